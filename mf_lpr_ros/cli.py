@@ -1,0 +1,203 @@
+"""mf-lpr: offline tools for building maps, localising, evaluating and a self-contained demo.
+
+Run `mf-lpr SUBCOMMAND --help` for each tool's options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .config import PRESETS, Config, ConfigError, load_config, preset
+from .datasets import DatasetError, open_source
+from .descriptor import InvalidCloudError
+from .map_store import MapFileError, ReferenceMap
+
+SOURCE_HELP = ("a KITTI folder (velodyne/*.bin + poses.txt), a PCD folder (+ poses_tum.txt), "
+               "a BEV PNG folder (imgs/ + poses.txt) or a ROS 1/2 bag")
+
+
+def _config(args: argparse.Namespace) -> Config:
+    base = preset(args.preset)
+    if getattr(args, "config", None):
+        base = load_config(args.config, base)
+    if getattr(args, "spacing_m", None) is not None:
+        base = Config(base.descriptor, base.search, args.spacing_m)
+    if getattr(args, "max_shift_m", None) is not None:
+        from dataclasses import replace
+        base = Config(base.descriptor, replace(base.search, max_shift_m=args.max_shift_m),
+                      base.spacing_m)
+    return base
+
+
+def _add_common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", default="default", choices=sorted(PRESETS),
+                        help="parameter preset (default: %(default)s)")
+    parser.add_argument("--config", help="YAML file overriding the preset (see config/)")
+    parser.add_argument("--cloud-topic", help="PointCloud2 topic of a bag (default: the only one)")
+    parser.add_argument("--pose-topic", help="Odometry/PoseStamped topic of a bag (default: the only one)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def cmd_build_map(args: argparse.Namespace) -> int:
+    from .pipeline import build_map
+
+    config = _config(args)
+    sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
+    reference_map = build_map(sequence, config, keep_clouds=args.keep_clouds,
+                              progress=not args.quiet)
+    reference_map.save(args.out)
+    print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
+          f"(voxel {config.descriptor.voxel_size} m, spacing {config.spacing_m} m)")
+    return 0
+
+
+def cmd_localise(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .pipeline import localise_sequence
+
+    reference_map = ReferenceMap.load(args.map)
+    search = _config(args).search
+    if args.min_confidence is not None:
+        search = replace(search, min_confidence=args.min_confidence)
+    sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
+    outcomes = localise_sequence(reference_map, sequence, search, progress=not args.quiet)
+    columns = ["index", "stamp", "ref_index", "ref_stamp", "score", "confidence", "accepted", "x",
+               "y", "yaw", "gt_x", "gt_y", "gt_yaw", "translation_error_m", "yaw_error_deg",
+               "ms_descriptor", "ms_global", "ms_local"]
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for outcome in outcomes:
+            match = outcome.match
+            truth = outcome.truth if outcome.truth is not None else np.full(3, math.nan)
+            writer.writerow([
+                outcome.index, f"{outcome.stamp:.6f}", match.reference_index,
+                f"{reference_map.stamps[match.reference_index]:.6f}", f"{match.score:.6g}",
+                f"{match.confidence:.4f}", int(match.confidence >= search.min_confidence),
+                *(f"{v:.4f}" for v in match.pose), *(f"{v:.4f}" for v in truth),
+                f"{outcome.translation_error_m:.4f}", f"{outcome.yaw_error_deg:.3f}",
+                f"{outcome.descriptor_ms:.2f}", f"{match.timings_ms['global']:.2f}",
+                f"{match.timings_ms['local']:.2f}"])
+    errors = np.array([o.translation_error_m for o in outcomes])
+    print(f"wrote {args.out}: {len(outcomes)} queries against {len(reference_map)} references"
+          + (f"; median translation error {np.nanmedian(errors):.3f} m"
+             if np.isfinite(errors).any() else ""))
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .pipeline import evaluate
+
+    config = _config(args)
+    reference = open_source(args.reference, args.cloud_topic, args.pose_topic)
+    query = open_source(args.query, args.cloud_topic, args.pose_topic) if args.query else None
+    results = evaluate(reference, config, args.tolerance, query=query,
+                       exclude_recent_frames=args.exclude_recent_frames,
+                       query_every=args.query_every, progress=not args.quiet)
+    results["config"] = config.to_dict()
+    results["tolerance_m"] = args.tolerance
+    text = json.dumps(results, indent=2)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text + "\n")
+    for key in ("n_queries", "n_references", "recall_at_1", "recall_at_1_corrected", "recall_at_5",
+                "rte_mean_m", "rre_mean_deg", "success_rate", "f1_max", "ms_per_query"):
+        value = results[key]
+        print(f"{key:>22}: {value:.4f}" if isinstance(value, float) else f"{key:>22}: {value}")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    reference_map = ReferenceMap.load(args.map)
+    poses = reference_map.planar_poses
+    print(json.dumps({
+        "references": len(reference_map),
+        "descriptor": reference_map.params.__dict__,
+        "frame_id": reference_map.frame_id,
+        "sensor_frame_id": reference_map.sensor_frame_id,
+        "keeps_clouds": reference_map.has_clouds,
+        "extent_xy_m": (poses[:, :2].min(0).tolist(), poses[:, :2].max(0).tolist())
+        if len(poses) else None,
+        "metadata": reference_map.metadata,
+    }, indent=2))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(Path(args.out), seed=args.seed, progress=not args.quiet)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mf-lpr", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    build = commands.add_parser("build-map", help="build a reference map from a sequence or bag")
+    build.add_argument("source", help=SOURCE_HELP)
+    build.add_argument("--out", required=True, help="map file to write (atomically)")
+    build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
+    build.add_argument("--keep-clouds", action="store_true",
+                       help="store reference clouds in the map (enables ICP refinement)")
+    _add_common(build)
+    build.set_defaults(handler=cmd_build_map)
+
+    localise = commands.add_parser("localise", help="match every scan of a source against a map")
+    localise.add_argument("map", help="map file from build-map")
+    localise.add_argument("source", help=SOURCE_HELP)
+    localise.add_argument("--out", required=True, help="CSV with one row per query")
+    localise.add_argument("--min-confidence", type=float, help="accept threshold for the CSV")
+    localise.add_argument("--max-shift-m", type=float, help="largest searched translation")
+    _add_common(localise)
+    localise.set_defaults(handler=cmd_localise)
+
+    evaluation = commands.add_parser(
+        "evaluate", help="recall, pose errors and timings against ground truth",
+        description="With --query: references from --reference, queries from --query. Without: "
+                    "the single-sequence loop-closure protocol (each scan queries the references "
+                    "more than --exclude-recent-frames frames older).")
+    evaluation.add_argument("--reference", required=True, help=SOURCE_HELP)
+    evaluation.add_argument("--query", help="a second source of queries")
+    evaluation.add_argument("--tolerance", type=float, required=True,
+                            help="metres within which a match counts as correct")
+    evaluation.add_argument("--exclude-recent-frames", type=int, default=0)
+    evaluation.add_argument("--query-every", type=int, default=1, help="use every N-th scan as query")
+    evaluation.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
+    evaluation.add_argument("--max-shift-m", type=float, help="largest searched translation")
+    evaluation.add_argument("--json", help="write the results here")
+    _add_common(evaluation)
+    evaluation.set_defaults(handler=cmd_evaluate)
+
+    info = commands.add_parser("info", help="describe a map file")
+    info.add_argument("map")
+    info.set_defaults(handler=cmd_info)
+
+    demo = commands.add_parser("demo", help="build a map of a generated world and relocalise in it")
+    demo.add_argument("--out", default="out/demo", help="folder for the map, results and figure")
+    demo.add_argument("--seed", type=int, default=7)
+    demo.add_argument("--quiet", action="store_true")
+    demo.set_defaults(handler=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (ConfigError, DatasetError, MapFileError, InvalidCloudError, ValueError) as error:
+        print(f"mf-lpr {args.command}: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,204 @@
+"""Parameters of the descriptor and the search, with presets and YAML loading.
+
+Every default below is the paper's value (METHOD.md section 4) unless a comment says why not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A parameter value is invalid; the message names the parameter."""
+
+
+@dataclass(frozen=True)
+class DescriptorParams:
+    """How a scan becomes a BEV occupancy descriptor (METHOD.md section 1).
+
+    size: cells per side of the high-resolution grid (D).
+    voxel_size: cell and voxel edge in metres (v).
+    z_min, z_max: height band kept, metres in the sensor frame (None = unbounded).
+    max_range: horizontal range cut in metres (None = only the square crop).
+    density_mode: "voxels" counts occupied voxels per column (paper), "points" counts raw
+        points per column (the authors' scripts).
+    density_threshold: a column is occupied when its density exceeds this (d).
+    unoccupied_weight: value of unoccupied cells (w).
+    patch_size, patch_cap: reference scans keep at most patch_cap occupied cells in each
+        patch_size x patch_size patch (m, c).
+    pool: average-pooling factor for the low-resolution descriptor (u).
+    seed: base of the per-scan random generator used by the patch cap.
+    """
+
+    size: int = 120
+    voxel_size: float = 0.5
+    z_min: float | None = None
+    z_max: float | None = None
+    max_range: float | None = None
+    density_mode: str = "voxels"
+    density_threshold: float = 1.0
+    unoccupied_weight: float = -0.15
+    patch_size: int = 10
+    patch_cap: int = 20
+    pool: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _require(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8", self.size)
+        _require(self.voxel_size > 0, "voxel_size", "> 0", self.voxel_size)
+        _require(self.density_mode in ("voxels", "points"), "density_mode", "'voxels' or 'points'",
+                 self.density_mode)
+        _require(self.density_threshold >= 0, "density_threshold", ">= 0", self.density_threshold)
+        _require(-1.0 <= self.unoccupied_weight <= 0.0, "unoccupied_weight", "in [-1, 0]",
+                 self.unoccupied_weight)
+        _require(self.patch_size >= 1 and self.size % self.patch_size == 0, "patch_size",
+                 f"a divisor of size ({self.size})", self.patch_size)
+        _require(1 <= self.patch_cap <= self.patch_size ** 2, "patch_cap",
+                 f"in [1, patch_size^2 = {self.patch_size ** 2}]", self.patch_cap)
+        _require(self.pool >= 1 and self.size % self.pool == 0, "pool",
+                 f"a divisor of size ({self.size})", self.pool)
+        if self.z_min is not None and self.z_max is not None:
+            _require(self.z_min < self.z_max, "z_min", f"< z_max ({self.z_max})", self.z_min)
+        if self.max_range is not None:
+            _require(self.max_range > 0, "max_range", "> 0", self.max_range)
+
+    @property
+    def extent_m(self) -> float:
+        """Side of the square window covered by the descriptor, in metres."""
+        return self.size * self.voxel_size
+
+    @property
+    def low_size(self) -> int:
+        return self.size // self.pool
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """How a query descriptor is matched against the map (METHOD.md sections 2 and 3).
+
+    rotation_step_deg: rotation sampling of the global stage (k).
+    top_n: distinct references passed from the global to the local stage (n).
+    max_shift_m: largest translation between query and reference that is searched, in metres.
+        The paper searches every shift of a full linear correlation; a window both bounds
+        the cost and rejects alignments with little overlap.
+    local_rotation_range_deg, local_rotation_step_deg: the local stage searches rotations
+        within +-range of the global best, at this finer step.
+    score_normalisation: "raw" (paper) ranks by the dot product; "cosine" divides it by the
+        reference descriptor's norm so dense references are not favoured.
+    min_confidence: matches below this confidence are rejected by the localiser.
+    chunk_size: references processed per block in the global stage (memory vs. speed).
+    icp: refine the pose with point-to-point ICP when the map keeps reference clouds.
+    """
+
+    rotation_step_deg: float = 10.0
+    top_n: int = 2
+    max_shift_m: float = 8.0
+    local_rotation_range_deg: float = 10.0
+    local_rotation_step_deg: float = 2.0
+    score_normalisation: str = "cosine"
+    min_confidence: float = 0.0
+    chunk_size: int = 256
+    icp: bool = False
+
+    def __post_init__(self) -> None:
+        _require(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
+                 "rotation_step_deg", "a divisor of 360", self.rotation_step_deg)
+        _require(self.top_n >= 1, "top_n", ">= 1", self.top_n)
+        _require(self.max_shift_m > 0, "max_shift_m", "> 0", self.max_shift_m)
+        _require(self.local_rotation_range_deg >= 0, "local_rotation_range_deg", ">= 0",
+                 self.local_rotation_range_deg)
+        _require(self.local_rotation_step_deg > 0, "local_rotation_step_deg", "> 0",
+                 self.local_rotation_step_deg)
+        _require(self.score_normalisation in ("raw", "cosine"), "score_normalisation",
+                 "'raw' or 'cosine'", self.score_normalisation)
+        _require(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
+                 self.min_confidence)
+        _require(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything the pipeline needs: descriptor, search and map-building parameters."""
+
+    descriptor: DescriptorParams = field(default_factory=DescriptorParams)
+    search: SearchParams = field(default_factory=SearchParams)
+    spacing_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        _require(self.spacing_m >= 0, "spacing_m", ">= 0", self.spacing_m)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    # KITTI HDL-64E at 1.73 m: the band above the ground plane; 0.4 m matches the KITTI BEV images.
+    "kitti": {"descriptor": {"voxel_size": 0.4, "z_min": -1.2, "z_max": 3.0}},
+    "nclt": {"descriptor": {"voxel_size": 0.75}},
+    "oxford": {"descriptor": {"voxel_size": 1.3}},
+    "wildplaces": {"descriptor": {"voxel_size": 0.3, "z_min": 1.0, "z_max": 3.0,
+                                  "density_threshold": 2.0}},
+    # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
+    "handheld": {"descriptor": {"voxel_size": 0.25}, "search": {"max_shift_m": 6.0}},
+}
+
+
+def preset(name: str) -> Config:
+    """The named preset (see PRESETS)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return config_from_dict(PRESETS[name])
+
+
+def config_from_dict(values: Mapping[str, Any], base: Config | None = None) -> Config:
+    """A Config from nested mappings; unknown keys are refused by name."""
+    base = base or Config()
+    _check_keys(values, {f.name for f in fields(Config)} | {"preset"}, "config")
+    if "preset" in values:
+        base = preset(values["preset"])
+    descriptor = _merge(base.descriptor, values.get("descriptor") or {}, "descriptor")
+    search = _merge(base.search, values.get("search") or {}, "search")
+    spacing = float(values.get("spacing_m", base.spacing_m))
+    return Config(descriptor=descriptor, search=search, spacing_m=spacing)
+
+
+def load_config(path: str | Path, base: Config | None = None) -> Config:
+    """A Config from a YAML file (same nesting as Config.to_dict, optional 'preset' key)."""
+    try:
+        values = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise ConfigError(f"cannot read config file {path}: {error}") from error
+    if not isinstance(values, dict):
+        raise ConfigError(f"config file {path} must hold a mapping, not {type(values).__name__}")
+    return config_from_dict(values, base)
+
+
+def descriptor_params_from_dict(values: Mapping[str, Any]) -> DescriptorParams:
+    return _merge(DescriptorParams(), values, "descriptor")
+
+
+def _merge(current: Any, overrides: Mapping[str, Any], section: str) -> Any:
+    if not isinstance(overrides, Mapping):
+        raise ConfigError(f"{section} must be a mapping")
+    _check_keys(overrides, {f.name for f in fields(current)}, section)
+    try:
+        return dataclasses.replace(current, **overrides)
+    except TypeError as error:
+        raise ConfigError(f"{section}: {error}") from error
+
+
+def _check_keys(values: Mapping[str, Any], allowed: set[str], section: str) -> None:
+    unknown = sorted(set(values) - allowed)
+    if unknown:
+        raise ConfigError(f"unknown {section} parameter(s) {unknown}; known: {sorted(allowed)}")
+
+
+def _require(ok: bool, name: str, expectation: str, value: Any) -> None:
+    if not ok:
+        raise ConfigError(f"parameter {name} must be {expectation}, got {value!r}")

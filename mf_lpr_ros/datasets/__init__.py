@@ -1,0 +1,39 @@
+"""Dataset loaders, one per layout, behind the Sequence interface; open_source auto-detects."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .base import DatasetError, Scan, Sequence
+from .bev_png import BevPngSequence
+from .kitti import KittiSequence
+from .pcd_folder import PcdFolderSequence
+from .rosbag import RosbagSequence
+
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+
+__all__ = ["DatasetError", "Scan", "Sequence", "open_source", "KittiSequence",
+           "PcdFolderSequence", "BevPngSequence", "RosbagSequence"]
+
+
+def open_source(path: str | Path, cloud_topic: str | None = None,
+                pose_topic: str | None = None) -> Sequence:
+    """The Sequence for a dataset folder or bag, recognised by its layout."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such file or folder")
+    if path.is_file() and path.suffix in BAG_SUFFIXES:
+        return RosbagSequence(path, cloud_topic, pose_topic)
+    if path.is_dir():
+        if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+            return RosbagSequence(path, cloud_topic, pose_topic)
+        if (path / "velodyne").is_dir():
+            return KittiSequence(path)
+        if (path / "imgs").is_dir():
+            return BevPngSequence(path)
+        if (path / "poses_tum.txt").exists() or any(path.glob("*.pcd")) or (path / "pcd").is_dir():
+            return PcdFolderSequence(path)
+    raise DatasetError(
+        f"{path}: unknown dataset layout. Expected a KITTI folder (velodyne/*.bin, poses.txt), "
+        "a PCD folder (*.pcd or pcd/*.pcd with poses_tum.txt), a BEV PNG folder (imgs/*.png, "
+        "poses.txt) or a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)")

@@ -1,0 +1,93 @@
+"""The one interface every dataset loader implements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numpy as np
+
+
+class DatasetError(ValueError):
+    """A dataset folder or file is not in a layout we can read; the message says what is wrong."""
+
+
+@dataclass
+class Scan:
+    """One scan: either points (N, 3+) in the sensor frame or a ready height-density image.
+
+    density is in the package's axis convention (rows = y, columns = x, sensor at the centre
+    corner) with density_pixel_m metres per pixel. pose is world_T_sensor (4x4) or None.
+    """
+
+    index: int
+    stamp: float
+    pose: np.ndarray | None
+    points: np.ndarray | None = None
+    density: np.ndarray | None = None
+    density_pixel_m: float = 0.0
+
+
+class Sequence:
+    """Scans in time order with stamps and (optional) poses, readable in one pass.
+
+    Subclasses set name, stamps (n,), poses ((n, 4, 4) or None) and implement _read(indices),
+    yielding Scans for increasing indices.
+    """
+
+    name: str = ""
+    stamps: np.ndarray
+    poses: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def iter_scans(self, indices: Iterable[int] | None = None) -> Iterator[Scan]:
+        """Scans at the given indices (all by default), in increasing index order."""
+        wanted = np.arange(len(self)) if indices is None else np.unique(np.asarray(list(indices),
+                                                                                   dtype=np.int64))
+        if len(wanted) and (wanted[0] < 0 or wanted[-1] >= len(self)):
+            raise IndexError(f"scan index out of range for {self.name} ({len(self)} scans)")
+        return self._read(wanted)
+
+    def _read(self, indices: np.ndarray) -> Iterator[Scan]:
+        raise NotImplementedError
+
+    def pose(self, index: int) -> np.ndarray | None:
+        return None if self.poses is None else self.poses[index]
+
+
+def read_kitti_poses(path, expected: int | None = None) -> np.ndarray:
+    """KITTI poses file: 12 numbers per line (3x4 row-major) -> (n, 4, 4)."""
+    try:
+        values = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as error:
+        raise DatasetError(f"cannot read KITTI poses {path}: {error}") from error
+    if values.shape[1] != 12:
+        raise DatasetError(f"{path}: expected 12 numbers per line, got {values.shape[1]}")
+    if expected is not None and len(values) != expected:
+        raise DatasetError(f"{path}: {len(values)} poses for {expected} scans")
+    if not np.isfinite(values).all():
+        raise DatasetError(f"{path}: non-finite pose values")
+    poses = np.tile(np.eye(4), (len(values), 1, 1))
+    poses[:, :3, :4] = values.reshape(-1, 3, 4)
+    return poses
+
+
+def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
+    """TUM file 'key x y z qx qy qz qw' -> (keys (n,), poses (n, 4, 4)); '#' lines skipped."""
+    from ..pose import pose_matrix
+
+    try:
+        values = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+    except (OSError, ValueError) as error:
+        raise DatasetError(f"cannot read TUM poses {path}: {error}") from error
+    if values.shape[1] != 8:
+        raise DatasetError(f"{path}: expected 8 columns (key x y z qx qy qz qw), got {values.shape[1]}")
+    if not np.isfinite(values).all():
+        raise DatasetError(f"{path}: non-finite pose values")
+    try:
+        poses = pose_matrix(values[:, 1:4], values[:, 4:8])
+    except ValueError as error:
+        raise DatasetError(f"{path}: {error}") from error
+    return values[:, 0], poses

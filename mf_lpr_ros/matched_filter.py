@@ -1,0 +1,161 @@
+"""Windowed linear cross-correlation of query images against reference images.
+
+Every function here computes, for query Q and reference R (both H x W, zero outside),
+
+    S(di, dj) = sum_ij Q(i, j) * R(i + di, j + dj),   |di|, |dj| <= max_shift,
+
+returned as an array indexed [..., di + max_shift, dj + max_shift].
+
+SpectralBank is the many-references engine: it transforms each reference once along x (rows
+stay spatial), so that one query batch against a block of references is two dense real matrix
+products per block -- a direct correlation along y inside the first (the query side is
+expanded into its row shifts), and an inverse DFT restricted to the shift window in the
+second. Both run at BLAS speed and only the window is ever computed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy import fft as sp_fft
+
+
+class SpectralBank:
+    """Reference images prepared once for windowed correlation against many queries.
+
+    Storage is (K, 2H, capacity) float32: for each x-frequency k the real and imaginary parts
+    of every reference row, references along the last axis so a block is a column slice.
+    """
+
+    def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64) -> None:
+        if max_shift < 0:
+            raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+        self.height, self.width, self.max_shift = height, width, max_shift
+        self.fft_length = width + max_shift
+        self.n_freqs = self.fft_length // 2 + 1
+        self._bank = np.zeros((self.n_freqs, 2 * height, max(capacity, 1)), dtype=np.float32)
+        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
+        self._count = 0
+        self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def norms(self) -> np.ndarray:
+        """L2 norm of every reference image."""
+        return self._norms[: self._count]
+
+    @property
+    def nbytes(self) -> int:
+        return self._bank.nbytes + self._norms.nbytes
+
+    def append(self, images: np.ndarray) -> None:
+        """Add references, (n, H, W) float32."""
+        images = np.asarray(images, dtype=np.float32)
+        if images.ndim != 3 or images.shape[1:] != (self.height, self.width):
+            raise ValueError(f"expected (n, {self.height}, {self.width}) images, got {images.shape}")
+        n_new = len(images)
+        self._reserve(self._count + n_new)
+        spectra = sp_fft.rfft(images, n=self.fft_length, axis=2)
+        start, stop = self._count, self._count + n_new
+        self._bank[:, : self.height, start:stop] = spectra.real.transpose(2, 1, 0)
+        self._bank[:, self.height:, start:stop] = spectra.imag.transpose(2, 1, 0)
+        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
+        self._count = stop
+
+    def _reserve(self, needed: int) -> None:
+        capacity = self._bank.shape[2]
+        if needed <= capacity:
+            return
+        new_capacity = max(needed, 2 * capacity)
+        bank = np.zeros((self.n_freqs, 2 * self.height, new_capacity), dtype=np.float32)
+        bank[:, :, : self._count] = self._bank[:, :, : self._count]
+        norms = np.zeros(new_capacity, dtype=np.float32)
+        norms[: self._count] = self._norms[: self._count]
+        self._bank, self._norms = bank, norms
+
+    def prepare_queries(self, queries: np.ndarray) -> np.ndarray:
+        """The query-side operator (K, 2M, 2H) for a batch of A query images (A, H, W).
+
+        Row m = (a, di) of the real block holds the query's row spectrum shifted by di, so
+        that multiplying by a reference's [Re; Im] row spectra correlates along y.
+        """
+        queries = np.asarray(queries, dtype=np.float32)
+        n_queries, height = queries.shape[0], self.height
+        spectra = sp_fft.rfft(queries, n=self.fft_length, axis=2)
+        shift = self.max_shift
+        padded = np.zeros((n_queries, height + 2 * shift, self.n_freqs), dtype=np.complex64)
+        padded[:, shift: shift + height] = spectra
+        # windows[a, t, k, i] = padded[a, t + i, k]; di = shift - t, so reverse t for di ascending.
+        windows = sliding_window_view(padded, height, axis=1)[:, ::-1]
+        shifted = windows.transpose(2, 0, 1, 3).reshape(self.n_freqs, -1, height)
+        real, imag = shifted.real, shifted.imag
+        operator = np.empty((self.n_freqs, 2, shifted.shape[1], 2 * height), dtype=np.float32)
+        operator[:, 0, :, :height] = real
+        operator[:, 0, :, height:] = imag
+        operator[:, 1, :, :height] = -imag
+        operator[:, 1, :, height:] = real
+        return operator.reshape(self.n_freqs, -1, 2 * height)
+
+    def correlate_block(self, operator: np.ndarray, start: int, stop: int) -> np.ndarray:
+        """Scores of the prepared queries against references [start, stop).
+
+        Returns (2S+1 [dj], A, 2S+1 [di], stop - start) float32.
+        """
+        n_rows = operator.shape[1] // 2
+        spectra = np.matmul(operator, self._bank[:, :, start:stop])
+        scores = self._inverse @ spectra.reshape(2 * self.n_freqs, n_rows * (stop - start))
+        n_shifts = 2 * self.max_shift + 1
+        return scores.reshape(n_shifts, n_rows // n_shifts, n_shifts, stop - start)
+
+    def best_per_reference(self, operator: np.ndarray, stop: int | None = None,
+                           chunk_size: int = 256) -> np.ndarray:
+        """Best score over the whole (dj, a, di) volume of every reference in [0, stop)."""
+        stop = self._count if stop is None else min(stop, self._count)
+        best = np.empty(stop, dtype=np.float32)
+        for start in range(0, stop, chunk_size):
+            end = min(start + chunk_size, stop)
+            # max over a leading axis is memory-bound and ~50x cheaper than argmax here.
+            best[start:end] = self.correlate_block(operator, start, end).reshape(
+                -1, end - start).max(axis=0)
+        return best
+
+    def locate(self, operator: np.ndarray, reference: int) -> tuple[int, int, int, float]:
+        """(query a, di, dj, score) of one reference's best alignment."""
+        volume = self.correlate_block(operator, reference, reference + 1)[..., 0]
+        dj, a, di = np.unravel_index(int(volume.argmax()), volume.shape)
+        return int(a), int(di) - self.max_shift, int(dj) - self.max_shift, float(volume[dj, a, di])
+
+
+def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarray:
+    """(2S+1, 2K) real matrix: interleaved [Re, Im] half-spectrum -> real signal at |dj| <= S."""
+    shifts = np.arange(-max_shift, max_shift + 1)[:, None]
+    freqs = np.arange(n_freqs)[None, :]
+    weight = np.full(n_freqs, 2.0)
+    weight[0] = 1.0
+    if length % 2 == 0:
+        weight[-1] = 1.0
+    phase = 2 * np.pi * freqs * shifts / length
+    inverse = np.empty((len(shifts), n_freqs, 2))
+    inverse[:, :, 0] = weight * np.cos(phase) / length
+    inverse[:, :, 1] = -weight * np.sin(phase) / length
+    # spectra rows are ordered (k, part); match that ordering.
+    return np.ascontiguousarray(inverse.reshape(len(shifts), 2 * n_freqs), dtype=np.float32)
+
+
+def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -> np.ndarray:
+    """Windowed correlation of a few queries (A, H, W) with one reference (H, W) by 2-D FFT.
+
+    Cheaper than a SpectralBank for a handful of references. Returns (A, 2S+1, 2S+1).
+    """
+    queries = np.asarray(queries, dtype=np.float32)
+    height, width = reference.shape
+    shape = (height + max_shift, width + max_shift)
+    ref_spectrum = sp_fft.rfft2(reference.astype(np.float32), s=shape)
+    query_spectra = sp_fft.rfft2(queries, s=shape, axes=(-2, -1))
+    full = sp_fft.irfft2(np.conj(query_spectra) * ref_spectrum, s=shape, axes=(-2, -1))
+    window = np.arange(-max_shift, max_shift + 1)
+    rows = window % shape[0]
+    cols = window % shape[1]
+    return full[:, rows][:, :, cols].astype(np.float32)

@@ -1,0 +1,223 @@
+"""Two-stage matched-filter search and pose estimation (METHOD.md sections 2 and 3)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import SearchParams
+from .descriptor import pool, rotate_occupancy, weighted
+from .map_store import ReferenceMap
+from .matched_filter import SpectralBank, correlate_fft2
+from .pose import query_pose_from_alignment, rotate_covariance
+
+# Scale from normalised peak curvature to variance: a peak whose score halves one cell away
+# gets a standard deviation of ~0.3 cell before inflation by low confidence.
+_CURVATURE_TO_VARIANCE = 0.1
+_MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
+_REPORTED_CANDIDATES = 5
+
+# Least-squares fit of f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2 on the 3x3 grid
+# (x along columns, y along rows, both -1..1).
+_grid_y, _grid_x = np.mgrid[-1:2, -1:2]
+_QUADRATIC_FIT = np.linalg.pinv(np.stack([
+    np.ones(9), _grid_x.ravel(), _grid_y.ravel(), _grid_x.ravel() ** 2,
+    _grid_x.ravel() * _grid_y.ravel(), _grid_y.ravel() ** 2], axis=1))
+
+
+@dataclass
+class MatchResult:
+    """The best reference for a query and the pose it implies.
+
+    shift_m, rotation_rad: the query sensor's position and heading in the reference's sensor
+    frame (the loop-closure constraint). pose: (x, y, yaw) of the query in the map frame.
+    covariance / relative_covariance: 3x3 over (x, y, yaw) in the map / reference frame.
+    score: local peak score, normalised as SearchParams.score_normalisation says.
+    confidence: cosine similarity of query and reference at the best alignment, in [0, 1].
+    candidates: reference indices by rank (the match first, then the global ranking).
+    """
+
+    reference_index: int
+    score: float
+    confidence: float
+    shift_m: np.ndarray
+    rotation_rad: float
+    pose: np.ndarray
+    covariance: np.ndarray
+    relative_covariance: np.ndarray
+    candidates: np.ndarray
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class MatchedFilterIndex:
+    """Searches a ReferenceMap; reference spectra are computed once, when references arrive."""
+
+    def __init__(self, reference_map: ReferenceMap, search: SearchParams) -> None:
+        self.map = reference_map
+        self.params = reference_map.params
+        self.search = search
+        low_cell = self.params.voxel_size * self.params.pool
+        self.low_shift = min(math.ceil(search.max_shift_m / low_cell), self.params.low_size - 1)
+        self.high_shift = min(math.ceil(search.max_shift_m / self.params.voxel_size),
+                              self.params.size - 1)
+        n_rotations = round(360 / search.rotation_step_deg)
+        self.global_angles = np.arange(n_rotations) * search.rotation_step_deg
+        half = search.local_rotation_range_deg
+        step = search.local_rotation_step_deg
+        n_side = int(np.floor(half / step + 1e-9))
+        self.local_offsets = np.arange(-n_side, n_side + 1) * step
+        size = self.params.low_size
+        self.bank = SpectralBank(size, size, self.low_shift, capacity=max(len(reference_map), 1))
+        self.sync()
+
+    def __len__(self) -> int:
+        return len(self.bank)
+
+    @property
+    def nbytes(self) -> int:
+        return self.bank.nbytes
+
+    def sync(self, block: int = 1024) -> int:
+        """Index references added to the map since the last call; returns how many."""
+        start, stop = len(self.bank), len(self.map)
+        for first in range(start, stop, block):
+            last = min(first + block, stop)
+            occupancy = self.map.occupancy(slice(first, last))
+            self.bank.append(pool(weighted(occupancy, self.params.unoccupied_weight),
+                                  self.params.pool))
+        return stop - start
+
+    def query(self, occupancy: np.ndarray, n_active: int | None = None) -> MatchResult | None:
+        """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
+
+        Returns None when there is no reference to search.
+        """
+        n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
+        if n_refs <= 0:
+            return None
+        started = time.perf_counter()
+        w = self.params.unoccupied_weight
+        low_queries = pool(weighted(rotate_occupancy(occupancy, self.global_angles), w),
+                           self.params.pool)
+        operator = self.bank.prepare_queries(low_queries)
+        scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
+        if self.search.score_normalisation == "cosine":
+            scores = scores / np.maximum(self.bank.norms[:n_refs], 1e-6)
+        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), n_refs)
+        ranked = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
+        ranked = ranked[np.argsort(-scores[ranked], kind="stable")]
+        global_done = time.perf_counter()
+
+        best: _LocalPeak | None = None
+        for reference in ranked[: self.search.top_n]:
+            angle_index, _, _, _ = self.bank.locate(operator, int(reference))
+            peak = self._local(occupancy, int(reference), self.global_angles[angle_index])
+            if best is None or peak.score > best.score:
+                best = peak
+        assert best is not None
+        result = self._result(best, ranked)
+        result.timings_ms = {"global": (global_done - started) * 1e3,
+                             "local": (time.perf_counter() - global_done) * 1e3}
+        return result
+
+    def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
+        w = self.params.unoccupied_weight
+        angles = global_angle + self.local_offsets
+        queries = weighted(rotate_occupancy(occupancy, angles), w)
+        reference_image = weighted(self.map.occupancy(reference), w)
+        surface = correlate_fft2(queries, reference_image, self.high_shift)
+        reference_norm = float(np.linalg.norm(reference_image))
+        normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
+        a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
+        raw = float(surface[a, row, col])
+        query_norm = float(np.linalg.norm(queries[a]))
+        confidence = raw / max(query_norm * reference_norm, 1e-9)
+        return _LocalPeak(reference=reference, score=raw / normaliser,
+                          confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
+                          surface=surface, angle_index=int(a), row=int(row), col=int(col))
+
+    def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
+        voxel = self.params.voxel_size
+        surface = peak.surface
+        offset, cell_hessian = _subcell_peak(surface[peak.angle_index], peak.row, peak.col)
+        peak_value = max(float(surface[peak.angle_index, peak.row, peak.col]), 1e-9)
+        per_angle = surface.reshape(len(peak.angles), -1).max(axis=1)
+        angle_offset, angle_curvature = _subsample_peak(per_angle, peak.angle_index)
+        step = self.search.local_rotation_step_deg
+        rotation_deg = peak.angles[peak.angle_index] + angle_offset * step
+        shift_cells = np.array([peak.col - self.high_shift + offset[0],
+                                peak.row - self.high_shift + offset[1]])
+        shift_m = shift_cells * voxel
+        rotation = math.radians(rotation_deg)
+
+        inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
+        relative_covariance = np.zeros((3, 3))
+        normalised_hessian = -cell_hessian / peak_value
+        if np.all(np.linalg.eigvalsh(normalised_hessian) > 1e-6):
+            relative_covariance[:2, :2] = (np.linalg.inv(normalised_hessian) * voxel ** 2
+                                           * _CURVATURE_TO_VARIANCE * inflation)
+        else:
+            relative_covariance[:2, :2] = np.eye(2) * (self.search.max_shift_m / 2) ** 2
+        yaw_curvature = -angle_curvature / (peak_value * step ** 2)
+        if yaw_curvature > 1e-9:
+            yaw_variance_deg2 = _CURVATURE_TO_VARIANCE / yaw_curvature * inflation
+        else:
+            yaw_variance_deg2 = self.search.local_rotation_range_deg ** 2
+        relative_covariance[2, 2] = math.radians(1.0) ** 2 * yaw_variance_deg2
+
+        reference_pose = self.map.planar_poses[peak.reference]
+        pose = query_pose_from_alignment(reference_pose, shift_m, rotation)
+        candidates = np.concatenate([[peak.reference], ranked[ranked != peak.reference]])
+        return MatchResult(
+            reference_index=peak.reference, score=peak.score, confidence=peak.confidence,
+            shift_m=shift_m, rotation_rad=rotation, pose=pose,
+            covariance=rotate_covariance(relative_covariance, reference_pose[2]),
+            relative_covariance=relative_covariance,
+            candidates=candidates[:_REPORTED_CANDIDATES])
+
+
+@dataclass
+class _LocalPeak:
+    reference: int
+    score: float
+    confidence: float
+    angles: np.ndarray
+    surface: np.ndarray
+    angle_index: int
+    row: int
+    col: int
+
+
+def _subcell_peak(surface: np.ndarray, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-cell offset (dx, dy) of a peak from a quadratic fit on its 3x3 neighbourhood.
+
+    Returns the offset (cells, clipped to +-0.5) and the fitted Hessian (x, y). At the window
+    border the offset along that axis is 0 and the curvature comes from what is available.
+    """
+    rows, cols = surface.shape
+    if 0 < row < rows - 1 and 0 < col < cols - 1:
+        patch = surface[row - 1: row + 2, col - 1: col + 2].astype(np.float64).ravel()
+        _, gx, gy, cxx, cxy, cyy = _QUADRATIC_FIT @ patch
+        hessian = np.array([[2 * cxx, cxy], [cxy, 2 * cyy]])
+        if np.all(np.linalg.eigvalsh(-hessian) > 1e-12):
+            offset = -np.linalg.solve(hessian, [gx, gy])
+            if np.all(np.abs(offset) <= 1.0):
+                return np.clip(offset, -0.5, 0.5), hessian
+    dx, hxx = _subsample_peak(surface[row], col)
+    dy, hyy = _subsample_peak(surface[:, col], row)
+    return np.array([dx, dy]), np.array([[hxx, 0.0], [0.0, hyy]])
+
+
+def _subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:
+    """Parabola through a 1-D peak and its neighbours: (offset in samples, second difference)."""
+    if index <= 0 or index >= len(values) - 1:
+        return 0.0, 0.0
+    left, centre, right = (float(values[index - 1]), float(values[index]),
+                           float(values[index + 1]))
+    curvature = left - 2 * centre + right
+    if curvature >= 0:
+        return 0.0, curvature
+    return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)), curvature

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Creates the project virtual environment with every runtime and test dependency.
+# Uses a system rclpy (a sourced ROS 2 Jazzy install) when one is present, else the
+# ROS 2 Jazzy wheels from PyPI.
+set -euo pipefail
+venv=${1:-.venv}
+python=${PYTHON:-python3}
+
+if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then
+  echo "setup: installing Debian's libusb-1.0-0 (needed by open3d)"
+  sudo_cmd=""
+  if [ "$(id -u)" != 0 ]; then sudo_cmd="sudo"; fi
+  $sudo_cmd apt-get update -qq && $sudo_cmd apt-get install -y -qq libusb-1.0-0 \
+    || echo "setup: WARNING could not install libusb-1.0-0; open3d (ICP refinement) will be unavailable"
+fi
+
+if [ ! -x "$venv/bin/python" ]; then
+  if $python -c "import rclpy" 2>/dev/null; then
+    $python -m venv --system-site-packages "$venv"
+  else
+    $python -m venv "$venv"
+  fi
+fi
+pip="$venv/bin/python -m pip"
+$pip install -q --upgrade pip
+$pip install -q numpy scipy rosbags tqdm matplotlib pyyaml pyfftw pytest hypothesis open3d-cpu
+if ! "$venv/bin/python" -c "import rclpy" 2>/dev/null; then
+  $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
+    ros-jazzy-nav-msgs ros-jazzy-std-msgs
+fi
+$pip install -q --no-deps -e .
+echo "setup: environment ready in $venv"

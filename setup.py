@@ -1,0 +1,34 @@
+"""ament_python package: `colcon build` on ROS 2 Jazzy, or `pip install -e .` in a venv."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "mf_lpr_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "pyyaml", "tqdm", "rosbags", "matplotlib",
+                      "pillow"],
+    extras_require={"icp": ["open3d-cpu"], "test": ["pytest", "hypothesis"]},
+    zip_safe=True,
+    maintainer="mf_lpr_ros developers",
+    maintainer_email="mf-lpr-ros@example.org",
+    description="LiDAR place recognition and relocalisation by matched filtering of BEV "
+                "occupancy descriptors, for ROS 2 Jazzy.",
+    license="BSD-3-Clause",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "mf-lpr = mf_lpr_ros.cli:main",
+        ],
+    },
+)
