@@ -10,6 +10,7 @@ import csv
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,11 +29,9 @@ def _config(args: argparse.Namespace) -> Config:
     if getattr(args, "config", None):
         base = load_config(args.config, base)
     if getattr(args, "spacing_m", None) is not None:
-        base = Config(base.descriptor, base.search, args.spacing_m)
+        base = replace(base, spacing_m=args.spacing_m)
     if getattr(args, "max_shift_m", None) is not None:
-        from dataclasses import replace
-        base = Config(base.descriptor, replace(base.search, max_shift_m=args.max_shift_m),
-                      base.spacing_m)
+        base = replace(base, search=replace(base.search, max_shift_m=args.max_shift_m))
     return base
 
 
@@ -59,8 +58,6 @@ def cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def cmd_localise(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from .pipeline import localise_sequence
 
     reference_map = ReferenceMap.load(args.map)

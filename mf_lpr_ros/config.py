@@ -33,6 +33,8 @@ class DescriptorParams:
         patch_size x patch_size patch (m, c).
     pool: average-pooling factor for the low-resolution descriptor (u).
     seed: base of the per-scan random generator used by the patch cap.
+    level: remove the scan's roll and pitch (from its pose or an IMU orientation) before
+        building the descriptor; for handheld or tilted sensors.
     """
 
     size: int = 120
@@ -47,6 +49,7 @@ class DescriptorParams:
     patch_cap: int = 20
     pool: int = 2
     seed: int = 0
+    level: bool = False
 
     def __post_init__(self) -> None:
         _require(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8", self.size)
@@ -92,7 +95,6 @@ class SearchParams:
         reference descriptor's norm so dense references are not favoured.
     min_confidence: matches below this confidence are rejected by the localiser.
     chunk_size: references processed per block in the global stage (memory vs. speed).
-    icp: refine the pose with point-to-point ICP when the map keeps reference clouds.
     """
 
     rotation_step_deg: float = 10.0
@@ -103,7 +105,6 @@ class SearchParams:
     score_normalisation: str = "cosine"
     min_confidence: float = 0.0
     chunk_size: int = 256
-    icp: bool = False
 
     def __post_init__(self) -> None:
         _require(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
@@ -145,7 +146,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     "wildplaces": {"descriptor": {"voxel_size": 0.3, "z_min": 1.0, "z_max": 3.0,
                                   "density_threshold": 2.0}},
     # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
-    "handheld": {"descriptor": {"voxel_size": 0.25}, "search": {"max_shift_m": 6.0}},
+    # Levelled with the pose's roll/pitch: a handheld sensor tilts 10 deg typically, 37 at worst.
+    "handheld": {"descriptor": {"voxel_size": 0.3, "level": True}, "search": {"max_shift_m": 6.0},
+                 "spacing_m": 1.0},
 }
 
 

@@ -13,7 +13,7 @@ from .config import Config, DescriptorParams, SearchParams
 from .datasets import Scan, Sequence
 from .descriptor import describe_density_image, describe_points
 from .map_store import ReferenceMap
-from .pose import planar, wrap_angle
+from .pose import level_points, planar, wrap_angle
 from .search import MatchedFilterIndex, MatchResult
 
 
@@ -24,7 +24,12 @@ def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> n
                                       reference=reference, scan_index=scan.index)
     if scan.points is None:
         raise ValueError(f"scan {scan.index} has neither points nor a density image")
-    return describe_points(scan.points, params, reference=reference, scan_index=scan.index)
+    points = scan.points
+    if params.level:
+        if scan.pose is None or not np.isfinite(scan.pose).all():
+            raise ValueError(f"scan {scan.index}: levelling needs its orientation, and it has no pose")
+        points = level_points(points, scan.pose[:3, :3])
+    return describe_points(points, params, reference=reference, scan_index=scan.index)
 
 
 def select_references(positions: np.ndarray, spacing_m: float,
@@ -108,7 +113,9 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
 
     With no query sequence, the single-sequence loop-closure protocol: each scan (every
     query_every-th) queries the references more than exclude_recent_frames frames older. A
-    query is positive when ground truth puts such a reference within tolerance_m.
+    query is positive when ground truth puts such a reference within tolerance_m. With a query
+    sequence recorded frame by frame alongside the reference (e.g. KITTI 00 and 00_rot),
+    exclude_recent_frames compares frame indices across the two the same way.
     """
     valid = _valid_poses(reference)
     positions = reference.poses[:, :2, 3]
@@ -117,7 +124,7 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
     query_seq = reference if same_sequence else query
     query_valid = _valid_poses(query_seq)
     query_indices = np.flatnonzero(query_valid)[::query_every]
-    if same_sequence:
+    if same_sequence or exclude_recent_frames > 0:
         # Queries need at least one reference old enough.
         query_indices = query_indices[query_indices > ref_indices[0] + exclude_recent_frames]
 
@@ -143,7 +150,7 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
     records = []
     for query_index in tqdm(query_indices, desc="search", disable=not progress, unit="query"):
         n_active = (int(np.searchsorted(ref_indices, query_index - exclude_recent_frames, "left"))
-                    if same_sequence else len(ref_indices))
+                    if same_sequence or exclude_recent_frames > 0 else len(ref_indices))
         if n_active == 0:
             continue
         occupancy, descriptor_ms = query_occupancy[int(query_index)]

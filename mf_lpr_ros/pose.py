@@ -156,3 +156,16 @@ def rotate_covariance(covariance: np.ndarray, yaw: float) -> np.ndarray:
     rotation = np.eye(3)
     rotation[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
     return rotation @ covariance @ rotation.T
+
+
+def level_points(points: np.ndarray, orientation: np.ndarray) -> np.ndarray:
+    """Points (N, 3+) in a frame with the sensor's heading but no roll or pitch.
+
+    orientation is world_R_sensor; the result is Rz(-yaw) world_R_sensor p, so a planar pose
+    (x, y, yaw) of the sensor still describes the levelled frame.
+    """
+    yaw = float(yaw_of(orientation))
+    heading = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0],
+                        [0.0, 0.0, 1.0]])
+    tilt = heading.T @ orientation
+    return np.asarray(points)[:, :3] @ tilt.T

@@ -59,10 +59,14 @@ def scan_world(world: World, x: float, y: float, yaw: float, rng: np.random.Gene
 
 def route(n_scans: int, radius_m: float = 30.0, lateral_offset_m: float = 0.0,
           reverse: bool = False) -> np.ndarray:
-    """(n, 3) x, y, yaw around a rounded-square loop; optionally offset sideways and reversed."""
-    t = np.linspace(0, 2 * np.pi, n_scans, endpoint=False)
+    """(n, 3) x, y, yaw at equal steps around a rounded-square loop; optionally offset sideways
+    (to the left of travel) and driven the other way."""
+    t = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
     x = radius_m * np.sign(np.cos(t)) * np.abs(np.cos(t)) ** 0.5
     y = radius_m * np.sign(np.sin(t)) * np.abs(np.sin(t)) ** 0.5
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    samples = np.linspace(0, arc[-1], n_scans, endpoint=False)
+    x, y = np.interp(samples, arc, x), np.interp(samples, arc, y)
     heading = np.arctan2(np.gradient(y), np.gradient(x))
     x = x - lateral_offset_m * np.sin(heading)
     y = y + lateral_offset_m * np.cos(heading)

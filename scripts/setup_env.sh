@@ -22,11 +22,22 @@ if [ ! -x "$venv/bin/python" ]; then
   fi
 fi
 pip="$venv/bin/python -m pip"
-$pip install -q --upgrade pip
-$pip install -q numpy scipy rosbags tqdm matplotlib pyyaml pyfftw pytest hypothesis open3d-cpu
+# This machine's pip config names local indexes that may not exist; their warnings are noise.
+quiet() {
+  local status
+  set +e
+  "$@" 2>&1 | grep -v "is ignored: it is neither"
+  status=${PIPESTATUS[0]}
+  set -e
+  return "$status"
+}
+quiet $pip install -q --upgrade pip
+quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis open3d-cpu
 if ! "$venv/bin/python" -c "import rclpy" 2>/dev/null; then
-  $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
+  quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
     ros-jazzy-nav-msgs ros-jazzy-std-msgs
 fi
-$pip install -q --no-deps -e .
+quiet $pip install -q --no-deps -e .
+"$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" \
+  || { echo "setup: the environment is incomplete" >&2; exit 1; }
 echo "setup: environment ready in $venv"

@@ -1,0 +1,36 @@
+"""Shared fixtures: the real data folder (skip when absent) and a generated world."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.synthetic import make_world
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def data_root() -> Path | None:
+    candidate = Path(os.environ.get("MF_LPR_DATA", REPO.parent / "shared" / "data"))
+    return candidate if candidate.is_dir() else None
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    root = data_root()
+    if root is None:
+        pytest.skip("real data not found: set MF_LPR_DATA or place shared/data beside the repo")
+    return root
+
+
+@pytest.fixture(scope="session")
+def world():
+    return make_world(seed=3)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

@@ -1,0 +1,79 @@
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.cli import main
+from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.synthetic import route, write_kitti_sequence
+
+
+@pytest.fixture(scope="module")
+def traversals(tmp_path_factory, world):
+    root = tmp_path_factory.mktemp("traversals")
+    write_kitti_sequence(root / "first", world, route(60), seed=1)
+    write_kitti_sequence(root / "second", world, route(20, lateral_offset_m=1.0, reverse=True), seed=2)
+    return root
+
+
+def test_build_localise_evaluate_round_trip(traversals, tmp_path, capsys):
+    map_path = tmp_path / "maps" / "first.mfmap"
+    assert main(["build-map", str(traversals / "first"), "--out", str(map_path), "--preset", "kitti",
+                 "--quiet"]) == 0
+    reference_map = ReferenceMap.load(map_path)
+    assert 25 <= len(reference_map) <= 60
+    steps = np.linalg.norm(np.diff(reference_map.planar_poses[:, :2], axis=0), axis=1)
+    assert steps.min() >= 2.0
+
+    results = tmp_path / "results.csv"
+    assert main(["localise", str(map_path), str(traversals / "second"), "--out", str(results),
+                 "--preset", "kitti", "--quiet"]) == 0
+    rows = list(csv.DictReader(results.open()))
+    assert len(rows) == 20
+    errors = np.array([float(r["translation_error_m"]) for r in rows])
+    assert np.median(errors) < 0.2
+    assert {"ref_index", "ref_stamp", "confidence", "yaw_error_deg"} <= set(rows[0])
+
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--reference", str(traversals / "first"), "--query",
+                 str(traversals / "second"), "--tolerance", "3", "--preset", "kitti", "--json",
+                 str(out), "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    for key in ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m", "rre_mean_deg",
+                "success_rate", "f1_max", "n_queries", "ms_per_query", "ms_descriptor", "ms_global",
+                "ms_local"):
+        assert key in report
+    assert report["n_queries"] == 20 and report["recall_at_1_corrected"] >= 0.95
+    assert main(["info", str(map_path)]) == 0
+    assert '"references"' in capsys.readouterr().out
+
+
+def test_single_sequence_protocol_excludes_recent_frames(traversals, tmp_path):
+    out = tmp_path / "loop.json"
+    # One lap of 4 m steps: with 50 frames excluded only the closing frames can revisit the start.
+    assert main(["evaluate", "--reference", str(traversals / "first"), "--tolerance", "5",
+                 "--exclude-recent-frames", "50", "--preset", "kitti", "--json", str(out),
+                 "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    assert 0 < report["n_queries"] < 10 and report["n_evaluated"] == 9
+    assert report["recall_at_1_corrected"] == 1.0
+
+
+def test_errors_are_reported_not_raised(tmp_path, capsys):
+    bad = tmp_path / "bad.mfmap"
+    bad.write_bytes(b"garbage")
+    assert main(["info", str(bad)]) == 2
+    assert "truncated map file" in capsys.readouterr().err
+    assert main(["build-map", str(tmp_path), "--out", str(tmp_path / "m.mfmap")]) == 2
+    assert "unknown dataset layout" in capsys.readouterr().err
+
+
+def test_reduced_demo_runs_end_to_end(tmp_path, capsys):
+    from mf_lpr_ros.demo import run_demo
+
+    assert run_demo(tmp_path, seed=3, n_scans=40, progress=False) == 0
+    printed = capsys.readouterr().out
+    assert "recall@1" in printed and (tmp_path / "demo.png").stat().st_size > 10000
+    recall = float(printed.split("recall@1 (pose within 3 m):")[1].split()[0])
+    assert recall >= 0.9

@@ -1,0 +1,49 @@
+import pytest
+
+from mf_lpr_ros.config import (PRESETS, Config, ConfigError, DescriptorParams, SearchParams,
+                               load_config, preset)
+
+REPO_CONFIGS = sorted((__import__("pathlib").Path(__file__).parents[1] / "config").glob("*.yaml"))
+
+
+def test_paper_defaults():
+    descriptor, search = DescriptorParams(), SearchParams()
+    assert (descriptor.size, descriptor.pool, descriptor.unoccupied_weight) == (120, 2, -0.15)
+    assert (descriptor.patch_size, descriptor.patch_cap) == (10, 20)
+    assert (search.rotation_step_deg, search.top_n) == (10.0, 2)
+    assert Config().spacing_m == 2.0
+
+
+def test_presets_load_and_differ():
+    assert set(PRESETS) >= {"default", "kitti", "nclt", "oxford", "wildplaces"}
+    assert preset("wildplaces").descriptor.voxel_size == 0.3
+    assert preset("wildplaces").descriptor.density_threshold == 2.0
+    assert preset("nclt").descriptor.voxel_size == 0.75
+    with pytest.raises(ConfigError, match="unknown preset"):
+        preset("mars")
+
+
+def test_yaml_overrides_a_preset(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("preset: kitti\nsearch:\n  max_shift_m: 12\nspacing_m: 3\n")
+    config = load_config(path)
+    assert config.descriptor.voxel_size == 0.4 and config.search.max_shift_m == 12
+    assert config.spacing_m == 3
+
+
+@pytest.mark.parametrize("text,name", [("descriptor:\n  voxel_size: -1\n", "voxel_size"),
+                                       ("descriptor:\n  pool: 7\n", "pool"),
+                                       ("search:\n  rotation_step_deg: 7\n", "rotation_step_deg"),
+                                       ("search:\n  score_normalisation: max\n", "score_normalisation"),
+                                       ("descriptor:\n  voxelsize: 1\n", "voxelsize"),
+                                       ("[1, 2]\n", "mapping")])
+def test_bad_values_name_the_parameter(tmp_path, text, name):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=name):
+        load_config(path)
+
+
+@pytest.mark.parametrize("path", REPO_CONFIGS, ids=lambda p: p.name)
+def test_shipped_config_files_load(path):
+    assert isinstance(load_config(path), Config)

@@ -1,0 +1,105 @@
+import numpy as np
+import pytest
+
+from mf_lpr_ros.config import DescriptorParams
+from mf_lpr_ros.descriptor import (InvalidCloudError, auto_voxel_size, cap_patches,
+                                   describe_density_image, describe_points, height_density, pool,
+                                   rotate_occupancy, weighted)
+
+PARAMS = DescriptorParams(voxel_size=0.5, density_threshold=1.0)
+
+
+def column_at(x, y, heights=(0.0, 0.6, 1.2)):
+    return np.array([[x, y, z] for z in heights])
+
+
+def test_axis_convention_rows_are_y_columns_are_x():
+    hdm = height_density(np.concatenate([column_at(10.2, 0.1), column_at(0.1, -5.2)]), PARAMS)
+    # x = 10.2 m -> column floor(20.4) + 60 = 80, row of y = 0.1 -> 60.
+    assert hdm[60, 80] == 3
+    # y = -5.2 m -> row floor(-10.4) + 60 = 49, column of x = 0.1 -> 60.
+    assert hdm[49, 60] == 3
+    assert hdm.sum() == 6
+
+
+def test_voxel_mode_counts_occupied_voxels_points_mode_counts_points():
+    cloud = np.concatenate([column_at(1.0, 1.0, heights=(0.1, 0.2, 0.3, 0.9))] * 3)
+    voxels = height_density(cloud, PARAMS)
+    points = height_density(cloud, DescriptorParams(voxel_size=0.5, density_mode="points"))
+    assert voxels[62, 62] == 2  # two 0.5 m voxels: z in [0, 0.5) and [0.5, 1.0)
+    assert points[62, 62] == 12
+
+
+def test_threshold_nan_and_height_band():
+    cloud = np.concatenate([column_at(3.0, 3.0), column_at(-3.0, 3.0, heights=(0.0,)),
+                            [[np.nan, 1.0, 0.0], [np.inf, 0.0, 0.0]],
+                            column_at(0.0, -3.0, heights=(5.0, 5.6, 6.2))])
+    occupancy = describe_points(cloud, DescriptorParams(voxel_size=0.5, z_max=4.0))
+    assert occupancy[66, 66]  # three voxels > threshold 1
+    assert not occupancy[66, 54]  # one voxel is not > 1
+    assert not occupancy[54, 60]  # above z_max
+    assert occupancy.sum() == 1
+
+
+def test_empty_or_all_nan_cloud_is_refused():
+    with pytest.raises(InvalidCloudError, match="no finite point"):
+        describe_points(np.full((10, 3), np.nan), PARAMS)
+    with pytest.raises(InvalidCloudError, match="shape"):
+        describe_points(np.zeros((10, 2)), PARAMS)
+
+
+def test_patch_cap_limits_each_patch_and_is_seeded(rng):
+    occupancy = rng.random((120, 120)) < 0.6
+    capped = cap_patches(occupancy, PARAMS, seed=5)
+    per_patch = capped.reshape(12, 10, 12, 10).sum(axis=(1, 3))
+    original = occupancy.reshape(12, 10, 12, 10).sum(axis=(1, 3))
+    assert np.all(per_patch == np.minimum(original, 20))
+    assert not np.any(capped & ~occupancy)
+    assert np.array_equal(capped, cap_patches(occupancy, PARAMS, seed=5))
+    assert not np.array_equal(capped, cap_patches(occupancy, PARAMS, seed=6))
+
+
+def test_reference_descriptor_is_reproducible_per_scan(world):
+    cloud = world.points[np.hypot(*world.points[:, :2].T) < 25]
+    a = describe_points(cloud, PARAMS, reference=True, scan_index=4)
+    b = describe_points(cloud, PARAMS, reference=True, scan_index=4)
+    query = describe_points(cloud, PARAMS)
+    assert np.array_equal(a, b)
+    assert a.sum() < query.sum()
+
+
+def test_weights_and_pooling():
+    occupancy = np.zeros((4, 4), dtype=bool)
+    occupancy[0, 0] = True
+    image = weighted(occupancy, -0.15)
+    assert image[0, 0] == 1.0 and image[3, 3] == pytest.approx(-0.15)
+    low = pool(image, 2)
+    assert low.shape == (2, 2)
+    assert low[0, 0] == pytest.approx((1 - 0.45) / 4)
+    assert low[1, 1] == pytest.approx(-0.15)
+
+
+def test_rotation_is_counter_clockwise_about_the_sensor():
+    cloud = column_at(10.2, 0.2)
+    occupancy = describe_points(cloud, PARAMS)
+    rotated = rotate_occupancy(occupancy, np.array([90.0]))[0]
+    expected = describe_points(column_at(-0.2, 10.2), PARAMS)
+    assert np.array_equal(rotated, expected)
+    assert np.array_equal(rotate_occupancy(occupancy, np.array([0.0]))[0], occupancy)
+
+
+def test_density_image_matches_point_descriptor():
+    cloud = np.concatenate([column_at(x, y) for x, y in [(4.2, -7.7), (-12.3, 3.3), (0.2, 0.2)]])
+    hdm = height_density(cloud, PARAMS)
+    from_image = describe_density_image(hdm, 0.5, PARAMS)
+    assert np.array_equal(from_image, describe_points(cloud, PARAMS))
+    # A finer source image resampled to the descriptor grid keeps the occupied cells.
+    fine = np.kron(hdm, np.ones((2, 2)))
+    assert np.array_equal(describe_density_image(fine, 0.25, PARAMS), from_image)
+
+
+def test_auto_voxel_size_follows_the_papers_rule(rng):
+    dense = [rng.uniform(-30, 30, (200000, 3)) * np.array([1, 1, 0.1])]
+    sparse = [rng.uniform(-10, 10, (300, 3))]
+    assert auto_voxel_size(dense) < auto_voxel_size(sparse)
+    assert 0.2 <= auto_voxel_size(dense) <= 0.5

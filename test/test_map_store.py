@@ -1,0 +1,142 @@
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.config import DescriptorParams
+from mf_lpr_ros.map_store import (FORMAT_VERSION, MapFileError, MapParameterMismatch,
+                                  ReferenceMap)
+from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw
+
+PARAMS = DescriptorParams(voxel_size=0.4)
+
+
+def make_map(rng, n=5, clouds=False):
+    reference_map = ReferenceMap(PARAMS, frame_id="map", sensor_frame_id="velodyne",
+                                 metadata={"source": "test"})
+    for i in range(n):
+        pose = pose_matrix(rng.normal(size=3), quaternion_from_yaw(rng.uniform(-3, 3)))
+        cloud = rng.normal(size=(50 + i, 3)) if clouds else None
+        reference_map.append(rng.random((120, 120)) < 0.2, pose, 100.0 + i, i * 3, cloud)
+    return reference_map
+
+
+def test_round_trip_keeps_everything(tmp_path, rng):
+    original = make_map(rng, clouds=True)
+    path = tmp_path / "a.mfmap"
+    original.save(path)
+    loaded = ReferenceMap.load(path)
+    assert len(loaded) == 5 and loaded.params == PARAMS
+    assert loaded.frame_id == "map" and loaded.sensor_frame_id == "velodyne"
+    assert loaded.metadata == {"source": "test"}
+    np.testing.assert_array_equal(loaded.occupancy(slice(None)), original.occupancy(slice(None)))
+    np.testing.assert_allclose(loaded.poses, original.poses)
+    np.testing.assert_allclose(loaded.stamps, original.stamps)
+    np.testing.assert_array_equal(loaded.source_indices, [0, 3, 6, 9, 12])
+    np.testing.assert_allclose(loaded.cloud(3), original.cloud(3))
+    assert isinstance(loaded.occupancy_bits, np.memmap)
+
+
+def test_append_after_load_and_resave(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    loaded = ReferenceMap.load(path)
+    loaded.append(np.ones((120, 120), dtype=bool), np.eye(4), 200.0, 99)
+    loaded.save(path)
+    again = ReferenceMap.load(path)
+    assert len(again) == 6 and again.occupancy(5).all() and again.stamps[-1] == 200.0
+
+
+def test_empty_map_round_trips(tmp_path):
+    path = tmp_path / "empty.mfmap"
+    ReferenceMap(PARAMS).save(path)
+    assert len(ReferenceMap.load(path)) == 0
+
+
+def test_flipped_byte_is_detected(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match="checksum"):
+        ReferenceMap.load(path)
+
+
+def test_corrupt_header_is_detected(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    data = bytearray(path.read_bytes())
+    data[30] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match="header"):
+        ReferenceMap.load(path)
+
+
+@pytest.mark.parametrize("keep", [0, 10, 23, 200, -1])
+def test_truncation_is_detected(tmp_path, rng, keep):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    data = path.read_bytes()
+    path.write_bytes(data[:keep] if keep >= 0 else data[:-1])
+    with pytest.raises(MapFileError, match="truncated|magic"):
+        ReferenceMap.load(path)
+
+
+def test_newer_and_unknown_versions_are_refused(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, 8, FORMAT_VERSION + 1)
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match="newer"):
+        ReferenceMap.load(path)
+    struct.pack_into("<I", data, 8, 0)
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match="version 0"):
+        ReferenceMap.load(path)
+
+
+def test_not_a_map_and_missing_file(tmp_path):
+    path = tmp_path / "b.mfmap"
+    path.write_bytes(b"PK\x03\x04" + b"\0" * 100)
+    with pytest.raises(MapFileError, match="not an mf_lpr_ros map"):
+        ReferenceMap.load(path)
+    with pytest.raises(MapFileError, match="cannot read"):
+        ReferenceMap.load(tmp_path / "missing.mfmap")
+
+
+def test_parameter_mismatch_names_the_parameter(rng):
+    reference_map = make_map(rng)
+    reference_map.check_params(PARAMS)
+    with pytest.raises(MapParameterMismatch, match="voxel_size: map has 0.4, requested 0.3"):
+        reference_map.check_params(DescriptorParams(voxel_size=0.3))
+
+
+def test_failed_save_keeps_the_previous_map(tmp_path, rng, monkeypatch):
+    path = tmp_path / "a.mfmap"
+    first = make_map(rng, n=3)
+    first.save(path)
+    bigger = make_map(rng, n=8)
+
+    def broken_fsync(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("mf_lpr_ros.map_store.os.fsync", broken_fsync)
+    with pytest.raises(OSError):
+        bigger.save(path)
+    monkeypatch.undo()
+    assert len(ReferenceMap.load(path)) == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["a.mfmap"]
+
+
+def test_header_is_self_describing(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    make_map(rng).save(path)
+    data = path.read_bytes()
+    header_len = struct.unpack_from("<I", data, 12)[0]
+    header = json.loads(data[20:20 + header_len])
+    assert header["descriptor"]["voxel_size"] == 0.4
+    assert header["n_references"] == 5
+    assert set(header["arrays"]) >= {"occupancy_bits", "poses", "stamps"}

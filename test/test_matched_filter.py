@@ -1,0 +1,66 @@
+import numpy as np
+import pytest
+
+from mf_lpr_ros.matched_filter import SpectralBank, correlate_fft2
+
+
+def correlate_direct(query, reference, max_shift):
+    """The definition S(di, dj) = sum Q(i, j) R(i + di, j + dj), shift by shift."""
+    height, width = reference.shape
+    n_shifts = 2 * max_shift + 1
+    scores = np.zeros((n_shifts, n_shifts))
+    for di in range(-max_shift, max_shift + 1):
+        for dj in range(-max_shift, max_shift + 1):
+            q_rows = slice(max(0, -di), min(height, height - di))
+            q_cols = slice(max(0, -dj), min(width, width - dj))
+            r_rows = slice(q_rows.start + di, q_rows.stop + di)
+            r_cols = slice(q_cols.start + dj, q_cols.stop + dj)
+            scores[di + max_shift, dj + max_shift] = np.sum(
+                query[q_rows, q_cols].astype(np.float64) * reference[r_rows, r_cols])
+    return scores
+
+
+@pytest.mark.parametrize("size,max_shift", [(12, 4), (16, 15), (20, 3)])
+def test_bank_equals_direct_correlation(rng, size, max_shift):
+    references = rng.normal(size=(7, size, size)).astype(np.float32)
+    queries = rng.normal(size=(3, size, size)).astype(np.float32)
+    bank = SpectralBank(size, size, max_shift, capacity=2)
+    bank.append(references[:3])
+    bank.append(references[3:])  # growing past capacity keeps earlier references
+    operator = bank.prepare_queries(queries)
+    volume = bank.correlate_block(operator, 0, 7)
+    for r in range(7):
+        for a in range(3):
+            direct = correlate_direct(queries[a], references[r], max_shift)
+            np.testing.assert_allclose(volume[:, a, :, r].T, direct, atol=1e-3)
+            np.testing.assert_allclose(correlate_fft2(queries[a:a + 1], references[r], max_shift)[0],
+                                       direct, atol=1e-3)
+
+
+def test_global_best_and_location_match_brute_force(rng):
+    size, max_shift = 14, 5
+    references = (rng.random((9, size, size)) < 0.3).astype(np.float32) - 0.15
+    queries = (rng.random((4, size, size)) < 0.3).astype(np.float32) - 0.15
+    bank = SpectralBank(size, size, max_shift)
+    bank.append(references)
+    operator = bank.prepare_queries(queries)
+    best = bank.best_per_reference(operator, chunk_size=4)
+    brute = np.array([[correlate_direct(q, r, max_shift) for q in queries] for r in references])
+    np.testing.assert_allclose(best, brute.reshape(9, -1).max(axis=1), atol=1e-3)
+    top = int(np.argmax(best))
+    assert top == int(np.argmax(brute.reshape(9, -1).max(axis=1)))
+    a, di, dj, score = bank.locate(operator, top)
+    expected = np.unravel_index(np.argmax(brute[top]), brute[top].shape)
+    assert (a, di + max_shift, dj + max_shift) == tuple(int(v) for v in expected)
+    assert score == pytest.approx(brute[top].max(), abs=1e-3)
+    # Restricting to the first references searches only those.
+    assert np.allclose(bank.best_per_reference(operator, stop=3), best[:3])
+
+
+def test_shifted_copy_peaks_at_its_shift(rng):
+    image = rng.normal(size=(30, 30)).astype(np.float32)
+    reference = np.zeros_like(image)
+    reference[5:, :27] = image[:25, 3:]  # content moved down 5 rows, left 3 columns
+    surface = correlate_fft2(image[None], reference, 8)[0]
+    row, col = np.unravel_index(np.argmax(surface), surface.shape)
+    assert (row - 8, col - 8) == (5, -3)
