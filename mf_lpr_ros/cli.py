@@ -65,7 +65,8 @@ def cmd_localise(args: argparse.Namespace) -> int:
     if args.min_confidence is not None:
         search = replace(search, min_confidence=args.min_confidence)
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
-    outcomes = localise_sequence(reference_map, sequence, search, progress=not args.quiet)
+    outcomes = localise_sequence(reference_map, sequence, search, icp=args.icp,
+                                 progress=not args.quiet)
     columns = ["index", "stamp", "ref_index", "ref_stamp", "score", "confidence", "accepted", "x",
                "y", "yaw", "gt_x", "gt_y", "gt_yaw", "translation_error_m", "yaw_error_deg",
                "ms_descriptor", "ms_global", "ms_local"]
@@ -155,6 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     localise.add_argument("--out", required=True, help="CSV with one row per query")
     localise.add_argument("--min-confidence", type=float, help="accept threshold for the CSV")
     localise.add_argument("--max-shift-m", type=float, help="largest searched translation")
+    localise.add_argument("--icp", action="store_true",
+                          help="refine each pose by ICP (open3d) against the map's reference clouds")
     _add_common(localise)
     localise.set_defaults(handler=cmd_localise)
 

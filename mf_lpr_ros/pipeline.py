@@ -13,7 +13,8 @@ from .config import Config, DescriptorParams, SearchParams
 from .datasets import Scan, Sequence
 from .descriptor import describe_density_image, describe_points
 from .map_store import ReferenceMap
-from .pose import level_points, planar, wrap_angle
+from .pose import level_points, planar, query_pose_from_alignment, wrap_angle
+from .refine import refine_with_icp
 from .search import MatchedFilterIndex, MatchResult
 
 
@@ -24,12 +25,19 @@ def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> n
                                       reference=reference, scan_index=scan.index)
     if scan.points is None:
         raise ValueError(f"scan {scan.index} has neither points nor a density image")
-    points = scan.points
-    if params.level:
-        if scan.pose is None or not np.isfinite(scan.pose).all():
-            raise ValueError(f"scan {scan.index}: levelling needs its orientation, and it has no pose")
-        points = level_points(points, scan.pose[:3, :3])
-    return describe_points(points, params, reference=reference, scan_index=scan.index)
+    return describe_points(prepared_points(scan, params), params, reference=reference,
+                           scan_index=scan.index)
+
+
+def prepared_points(scan: Scan, params: DescriptorParams) -> np.ndarray:
+    """The scan's points in the descriptor's frame (levelled when params.level)."""
+    if scan.points is None:
+        raise ValueError(f"scan {scan.index} has no points")
+    if not params.level:
+        return scan.points
+    if scan.pose is None or not np.isfinite(scan.pose).all():
+        raise ValueError(f"scan {scan.index}: levelling needs its orientation, and it has no pose")
+    return level_points(scan.points, scan.pose[:3, :3])
 
 
 def select_references(positions: np.ndarray, spacing_m: float,
@@ -61,7 +69,7 @@ def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
     for scan in tqdm(sequence.iter_scans(indices), total=len(indices), desc="build map",
                      disable=not progress, unit="scan"):
         occupancy = describe_scan(scan, config.descriptor, reference=True)
-        cloud = scan.points if keep_clouds else None
+        cloud = prepared_points(scan, config.descriptor) if keep_clouds else None
         reference_map.append(occupancy, scan.pose, scan.stamp, scan.index, cloud)
     return reference_map
 
@@ -89,9 +97,13 @@ class QueryOutcome:
 
 
 def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: SearchParams, *,
-                      indices: Iterable[int] | None = None,
+                      indices: Iterable[int] | None = None, icp: bool = False,
                       progress: bool = True) -> list[QueryOutcome]:
-    """Match every (selected) scan of a sequence against a map."""
+    """Match every (selected) scan of a sequence against a map; optionally refine by ICP
+    against the reference clouds the map keeps."""
+    if icp and not reference_map.has_clouds:
+        raise ValueError("ICP refinement needs a map that keeps reference clouds "
+                         "(build it with --keep-clouds)")
     index = MatchedFilterIndex(reference_map, search)
     outcomes = []
     selected = list(range(len(sequence))) if indices is None else list(indices)
@@ -101,9 +113,22 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         occupancy = describe_scan(scan, reference_map.params, reference=False)
         descriptor_ms = (time.perf_counter() - started) * 1e3
         match = index.query(occupancy)
+        if icp:
+            _apply_icp(match, prepared_points(scan, reference_map.params), reference_map)
         truth = planar(scan.pose) if scan.pose is not None and np.isfinite(scan.pose).all() else None
         outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, truth))
     return outcomes
+
+
+def _apply_icp(match: MatchResult, points: np.ndarray, reference_map: ReferenceMap) -> None:
+    started = time.perf_counter()
+    refined = refine_with_icp(points, reference_map.cloud(match.reference_index), match.shift_m,
+                              match.rotation_rad, max_correspondence_m=2 * reference_map.params.voxel_size)
+    if refined.accepted:
+        match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
+        match.pose = query_pose_from_alignment(reference_map.planar_poses[match.reference_index],
+                                               refined.shift_m, refined.rotation_rad)
+    match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
 
 
 def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,

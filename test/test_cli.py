@@ -77,3 +77,22 @@ def test_reduced_demo_runs_end_to_end(tmp_path, capsys):
     assert "recall@1" in printed and (tmp_path / "demo.png").stat().st_size > 10000
     recall = float(printed.split("recall@1 (pose within 3 m):")[1].split()[0])
     assert recall >= 0.9
+
+
+def test_icp_refinement_needs_clouds_and_tightens_poses(traversals, tmp_path, capsys):
+    plain, with_clouds = tmp_path / "plain.mfmap", tmp_path / "clouds.mfmap"
+    assert main(["build-map", str(traversals / "first"), "--out", str(plain), "--preset", "kitti",
+                 "--quiet"]) == 0
+    assert main(["localise", str(plain), str(traversals / "second"), "--out",
+                 str(tmp_path / "x.csv"), "--icp", "--quiet"]) == 2
+    assert "--keep-clouds" in capsys.readouterr().err
+    assert main(["build-map", str(traversals / "first"), "--out", str(with_clouds), "--preset",
+                 "kitti", "--keep-clouds", "--quiet"]) == 0
+    errors = {}
+    for name, extra in (("mf", []), ("icp", ["--icp"])):
+        out = tmp_path / f"{name}.csv"
+        assert main(["localise", str(with_clouds), str(traversals / "second"), "--out", str(out),
+                     "--preset", "kitti", "--quiet", *extra]) == 0
+        errors[name] = np.array([float(r["translation_error_m"]) for r in csv.DictReader(out.open())])
+    assert np.median(errors["icp"]) < 0.05
+    assert np.median(errors["icp"]) <= np.median(errors["mf"])
