@@ -126,7 +126,7 @@ def _apply_icp(match: MatchResult, points: np.ndarray, reference_map: ReferenceM
                               match.rotation_rad, max_correspondence_m=2 * reference_map.params.voxel_size)
     if refined.accepted:
         match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
-        match.pose = query_pose_from_alignment(reference_map.planar_poses[match.reference_index],
+        match.pose = query_pose_from_alignment(planar(reference_map.poses[match.reference_index]),
                                                refined.shift_m, refined.rotation_rad)
     match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
 

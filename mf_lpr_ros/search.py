@@ -12,7 +12,7 @@ from .config import SearchParams
 from .descriptor import pool, rotate_occupancy, weighted
 from .map_store import ReferenceMap
 from .matched_filter import SpectralBank, correlate_fft2
-from .pose import query_pose_from_alignment, rotate_covariance
+from .pose import planar, query_pose_from_alignment, rotate_covariance
 
 # Scale from normalised peak curvature to variance: a peak whose score halves one cell away
 # gets a standard deviation of ~0.3 cell before inflation by low confidence.
@@ -168,7 +168,7 @@ class MatchedFilterIndex:
             yaw_variance_deg2 = self.search.local_rotation_range_deg ** 2
         relative_covariance[2, 2] = math.radians(1.0) ** 2 * yaw_variance_deg2
 
-        reference_pose = self.map.planar_poses[peak.reference]
+        reference_pose = planar(self.map.poses[peak.reference])
         pose = query_pose_from_alignment(reference_pose, shift_m, rotation)
         candidates = np.concatenate([[peak.reference], ranked[ranked != peak.reference]])
         return MatchResult(
