@@ -157,9 +157,9 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
     query_occupancy: dict[int, tuple[np.ndarray, float]] = {}
     wanted_refs = set(ref_indices.tolist())
     wanted_queries = set(query_indices.tolist())
-    scans = reference.iter_scans(sorted(wanted_refs | (wanted_queries if same_sequence else set())))
-    for scan in tqdm(scans, desc="describe", disable=not progress, unit="scan",
-                     total=len(wanted_refs | (wanted_queries if same_sequence else set()))):
+    to_describe = sorted(wanted_refs | (wanted_queries if same_sequence else set()))
+    for scan in tqdm(reference.iter_scans(to_describe), desc="describe", disable=not progress,
+                     unit="scan", total=len(to_describe)):
         if scan.index in wanted_refs:
             reference_map.append(describe_scan(scan, config.descriptor, reference=True), scan.pose,
                                  scan.stamp, scan.index)
