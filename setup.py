@@ -29,6 +29,8 @@ setup(
     entry_points={
         "console_scripts": [
             "mf-lpr = mf_lpr_ros.cli:main",
+            "map_builder = mf_lpr_ros.ros.map_builder:main",
+            "localiser = mf_lpr_ros.ros.localiser:main",
         ],
     },
 )

@@ -130,6 +130,29 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    import rclpy
+
+    from .ros.replay import replay_bag
+
+    rclpy.init(args=["mf_lpr_replay", *(["--ros-args", *args.ros_args] if args.ros_args else [])])
+    try:
+        report = replay_bag(args.bag, topics=args.topics, rate=args.rate,
+                            wait_for_subscribers=args.wait_for_subscribers,
+                            wait_timeout_s=args.wait_timeout_s, progress=not args.quiet)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if rclpy.ok():
+            rclpy.shutdown()
+    for topic, count in report.published.items():
+        print(f"published {count} messages on {topic}")
+    for topic, reason in report.skipped_topics.items():
+        print(f"skipped {topic}: {reason}")
+    print(f"replayed in {report.seconds:.1f} s")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -177,6 +200,23 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--json", help="write the results here")
     _add_common(evaluation)
     evaluation.set_defaults(handler=cmd_evaluate)
+
+    replay = commands.add_parser(
+        "replay", help="publish a bag's clouds and poses on live ROS 2 topics",
+        description="Publishes a ROS 1 (.bag) or ROS 2 (.db3/.mcap) bag with rclpy, paced by the "
+                    "bag's timestamps, keeping header stamps. Arguments after --ros-args go to "
+                    "rclpy (e.g. --ros-args -r /points:=/velodyne_points).")
+    replay.add_argument("bag", help="bag file or ROS 2 bag folder")
+    replay.add_argument("--topics", nargs="+", help="topics to publish (default: every "
+                        "PointCloud2, Odometry, Pose(WithCovariance)Stamped and /tf topic)")
+    replay.add_argument("--rate", type=float, default=1.0, help="speed-up over real time")
+    replay.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
+                        help="start once every topic has N subscribers")
+    replay.add_argument("--wait-timeout-s", type=float, default=30.0)
+    replay.add_argument("--quiet", action="store_true")
+    replay.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
+                        help="rclpy arguments (remappings, parameters)")
+    replay.set_defaults(handler=cmd_replay)
 
     info = commands.add_parser("info", help="describe a map file")
     info.add_argument("map")

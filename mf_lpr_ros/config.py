@@ -6,10 +6,12 @@ Every default below is the paper's value (METHOD.md section 4) unless a comment 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
 import yaml
 
 
@@ -93,8 +95,17 @@ class SearchParams:
         within +-range of the global best, at this finer step.
     score_normalisation: "raw" (paper) ranks by the dot product; "cosine" divides it by the
         reference descriptor's norm so dense references are not favoured.
-    min_confidence: matches below this confidence are rejected by the localiser.
+    min_confidence: matches below this confidence are rejected by the localiser. 0.4 lies
+        between the thresholds that maximise F1 on the tuning sets (KITTI 00 BEV: 0.47, BALM
+        handheld: 0.35); the kitti and handheld presets use their own.
     chunk_size: references processed per block in the global stage (memory vs. speed).
+    verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
+        only if ICP (open3d) against the reference's stored cloud finds a correspondence
+        within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
+        is then published. Needs maps that keep clouds (loop_closure mode keeps them; build
+        maps with keep_clouds). On the BALM handheld sequence confidence alone cannot separate
+        true revisits from look-alike places (both reach 0.36-0.40); ICP fitness does (true
+        >= 0.66 but one, false <= 0.65).
     """
 
     rotation_step_deg: float = 10.0
@@ -103,8 +114,9 @@ class SearchParams:
     local_rotation_range_deg: float = 10.0
     local_rotation_step_deg: float = 2.0
     score_normalisation: str = "cosine"
-    min_confidence: float = 0.0
+    min_confidence: float = 0.4
     chunk_size: int = 256
+    verify_fitness: float = 0.0
 
     def __post_init__(self) -> None:
         _require(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
@@ -120,6 +132,8 @@ class SearchParams:
         _require(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
                  self.min_confidence)
         _require(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
+        _require(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",
+                 self.verify_fitness)
 
 
 @dataclass(frozen=True)
@@ -140,16 +154,21 @@ class Config:
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     # KITTI HDL-64E at 1.73 m: the band above the ground plane; 0.4 m matches the KITTI BEV images.
-    "kitti": {"descriptor": {"voxel_size": 0.4, "z_min": -1.2, "z_max": 3.0}},
+    "kitti": {"descriptor": {"voxel_size": 0.4, "z_min": -1.2, "z_max": 3.0},
+              "search": {"min_confidence": 0.45}},
     "nclt": {"descriptor": {"voxel_size": 0.75}},
     "oxford": {"descriptor": {"voxel_size": 1.3}},
     "wildplaces": {"descriptor": {"voxel_size": 0.3, "z_min": 1.0, "z_max": 3.0,
                                   "density_threshold": 2.0}},
     # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
     # Levelled with the pose's roll/pitch: a handheld sensor tilts 10 deg typically, 37 at worst.
-    "handheld": {"descriptor": {"voxel_size": 0.3, "level": True}, "search": {"max_shift_m": 6.0},
+    "handheld": {"descriptor": {"voxel_size": 0.3, "level": True},
+                 "search": {"max_shift_m": 6.0, "min_confidence": 0.28, "verify_fitness": 0.66},
                  "spacing_m": 1.0},
 }
+
+
+CONFIG_KEYS = frozenset({"preset", "descriptor", "search", "spacing_m"})
 
 
 def preset(name: str) -> Config:
@@ -164,22 +183,80 @@ def config_from_dict(values: Mapping[str, Any], base: Config | None = None) -> C
     base = base or Config()
     _check_keys(values, {f.name for f in fields(Config)} | {"preset"}, "config")
     if "preset" in values:
-        base = preset(values["preset"])
+        base = preset(_coerce("preset", "str", values["preset"]))
     descriptor = _merge(base.descriptor, values.get("descriptor") or {}, "descriptor")
     search = _merge(base.search, values.get("search") or {}, "search")
-    spacing = float(values.get("spacing_m", base.spacing_m))
+    spacing = _coerce("spacing_m", "float", values.get("spacing_m", base.spacing_m))
     return Config(descriptor=descriptor, search=search, spacing_m=spacing)
 
 
 def load_config(path: str | Path, base: Config | None = None) -> Config:
-    """A Config from a YAML file (same nesting as Config.to_dict, optional 'preset' key)."""
+    """A Config from a YAML file: Config.to_dict's nesting with an optional 'preset' key, either
+    at the top level or inside a ROS 2 parameter file (`<node or /**>: ros__parameters: ...`,
+    where other node parameters are ignored)."""
     try:
         values = yaml.safe_load(Path(path).read_text()) or {}
     except (OSError, yaml.YAMLError) as error:
         raise ConfigError(f"cannot read config file {path}: {error}") from error
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must hold a mapping, not {type(values).__name__}")
+    ros_sections = [v["ros__parameters"] for v in values.values()
+                    if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)]
+    if ros_sections:
+        values = {}
+        for section in ros_sections:
+            values.update({k: v for k, v in section.items() if k in CONFIG_KEYS})
     return config_from_dict(values, base)
+
+
+def flat_parameters(config: Config) -> dict[str, Any]:
+    """Config as ROS 2 parameter names and values: 'descriptor.voxel_size', ...; None -> +-inf."""
+    flat: dict[str, Any] = {}
+    for section in ("descriptor", "search"):
+        for item in fields(getattr(config, section)):
+            value = getattr(getattr(config, section), item.name)
+            if value is None:
+                value = -math.inf if item.name.endswith("_min") else math.inf
+            flat[f"{section}.{item.name}"] = value
+    flat["spacing_m"] = config.spacing_m
+    return flat
+
+
+def config_from_flat(values: Mapping[str, Any], base: Config | None = None) -> Config:
+    """Inverse of flat_parameters (plus an optional 'preset'); unknown names are refused."""
+    nested: dict[str, Any] = {}
+    for name, value in values.items():
+        section, _, key = name.rpartition(".")
+        if section:
+            nested.setdefault(section, {})[key] = value
+        else:
+            nested[key] = value
+    return config_from_dict(nested, base)
+
+
+def preset_file_text(name: str) -> str:
+    """config/<name>.yaml: the preset written out in full as a ROS 2 parameter file."""
+    flat = flat_parameters(preset(name))
+    lines = [f"# mf_lpr_ros parameters, preset {name!r} written out in full.",
+             "# A ROS 2 parameter file for every mf_lpr_ros node:",
+             f"#   ros2 run mf_lpr_ros localiser --ros-args --params-file config/{name}.yaml",
+             f"# and for the offline tools: mf-lpr ... --config config/{name}.yaml",
+             "# Meanings: mf_lpr_ros/config.py and README.md; .inf / -.inf mean unbounded.",
+             "/**:", "  ros__parameters:", f"    preset: {name}"]
+    for section in ("descriptor", "search"):
+        lines.append(f"    {section}:")
+        lines += [f"      {key.split('.', 1)[1]}: {_yaml_scalar(value)}"
+                  for key, value in flat.items() if key.startswith(section + ".")]
+    lines.append(f"    spacing_m: {_yaml_scalar(flat['spacing_m'])}")
+    return "\n".join(lines) + "\n"
+
+
+def _yaml_scalar(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and math.isinf(value):
+        return ".inf" if value > 0 else "-.inf"
+    return str(value)
 
 
 def descriptor_params_from_dict(values: Mapping[str, Any]) -> DescriptorParams:
@@ -189,11 +266,50 @@ def descriptor_params_from_dict(values: Mapping[str, Any]) -> DescriptorParams:
 def _merge(current: Any, overrides: Mapping[str, Any], section: str) -> Any:
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"{section} must be a mapping")
-    _check_keys(overrides, {f.name for f in fields(current)}, section)
+    known = {f.name: f.type for f in fields(current)}
+    _check_keys(overrides, set(known), section)
+    coerced = {name: _coerce(name, known[name], value) for name, value in overrides.items()}
     try:
-        return dataclasses.replace(current, **overrides)
+        return dataclasses.replace(current, **coerced)
     except TypeError as error:
         raise ConfigError(f"{section}: {error}") from error
+
+
+def _coerce(name: str, annotation: str, value: Any) -> Any:
+    """A value of the field's type; ROS parameter files and --ros-args give ints for floats,
+    and +-inf stands for "unbounded" where the field is optional (YAML null is not a ROS type)."""
+    optional = annotation.endswith("| None")
+    kind = annotation.split("|")[0].strip()
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"parameter {name} must be a {kind}, got None")
+    try:
+        if kind == "bool":
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError
+            return bool(value)
+        if kind == "int":
+            if isinstance(value, bool) or float(value) != int(value):
+                raise TypeError
+            return int(value)
+        if kind == "float":
+            if isinstance(value, bool):
+                raise TypeError
+            number = float(value)
+            if optional and math.isinf(number):
+                return None
+            if not math.isfinite(number):
+                raise TypeError
+            return number
+        if kind == "str":
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+    except (TypeError, ValueError):
+        raise ConfigError(f"parameter {name} must be a {'finite ' if kind == 'float' else ''}"
+                          f"{kind}, got {value!r}") from None
+    raise AssertionError(f"unhandled field type {annotation}")
 
 
 def _check_keys(values: Mapping[str, Any], allowed: set[str], section: str) -> None:

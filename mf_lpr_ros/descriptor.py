@@ -85,20 +85,26 @@ def cap_patches(occupancy: np.ndarray, params: DescriptorParams, seed: int) -> n
     return occupancy & keep.reshape(size, size)
 
 
-def scan_seed(params: DescriptorParams, scan_index: int) -> int:
+def scan_seed(params: DescriptorParams, seed_key: int) -> int:
     """Seed of the patch cap of one scan, so a map rebuilt from the same scans is identical."""
-    return (params.seed * 1_000_003 + scan_index) % (1 << 63)
+    return (params.seed * 1_000_003 + seed_key) % (1 << 63)
+
+
+def stamp_seed_key(stamp: float) -> int:
+    """A scan's seed key from its stamp (microseconds): the same scan gets the same patch cap
+    whether it is read from a folder, a bag or a live topic, and whatever was dropped before it."""
+    return int(round(stamp * 1e6))
 
 
 def describe_points(points: np.ndarray, params: DescriptorParams, *, reference: bool = False,
-                    scan_index: int = 0) -> np.ndarray:
+                    seed_key: int = 0) -> np.ndarray:
     """The high-resolution occupancy (bool, D x D) of one scan's points (sensor frame)."""
     occupancy = occupancy_from_density(height_density(points, params), params)
-    return _finish(occupancy, params, reference, scan_index)
+    return _finish(occupancy, params, reference, seed_key)
 
 
 def describe_density_image(density: np.ndarray, pixel_size: float, params: DescriptorParams, *,
-                           reference: bool = False, scan_index: int = 0) -> np.ndarray:
+                           reference: bool = False, seed_key: int = 0) -> np.ndarray:
     """The occupancy of a ready height-density image already in the package's axis convention.
 
     density: (H, W) occupied-voxel counts per column, rows = y, columns = x, the sensor at the
@@ -121,13 +127,13 @@ def describe_density_image(density: np.ndarray, pixel_size: float, params: Descr
     occupancy = occupancy_from_density(resampled, params)
     if not occupancy.any():
         raise InvalidCloudError("the density image has no occupied cell")
-    return _finish(occupancy, params, reference, scan_index)
+    return _finish(occupancy, params, reference, seed_key)
 
 
 def _finish(occupancy: np.ndarray, params: DescriptorParams, reference: bool,
-            scan_index: int) -> np.ndarray:
+            seed_key: int) -> np.ndarray:
     if reference:
-        occupancy = cap_patches(occupancy, params, scan_seed(params, scan_index))
+        occupancy = cap_patches(occupancy, params, scan_seed(params, seed_key))
     return occupancy
 
 

@@ -11,10 +11,10 @@ from tqdm import tqdm
 
 from .config import Config, DescriptorParams, SearchParams
 from .datasets import Scan, Sequence
-from .descriptor import describe_density_image, describe_points
+from .descriptor import describe_density_image, describe_points, stamp_seed_key
 from .map_store import ReferenceMap
-from .pose import level_points, planar, query_pose_from_alignment, wrap_angle
-from .refine import refine_with_icp
+from .pose import level_points, planar, wrap_angle
+from .refine import refine_match
 from .search import MatchedFilterIndex, MatchResult
 
 
@@ -22,11 +22,11 @@ def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> n
     """Occupancy of a scan, from its points or its ready density image."""
     if scan.density is not None:
         return describe_density_image(scan.density, scan.density_pixel_m, params,
-                                      reference=reference, scan_index=scan.index)
+                                      reference=reference, seed_key=stamp_seed_key(scan.stamp))
     if scan.points is None:
         raise ValueError(f"scan {scan.index} has neither points nor a density image")
     return describe_points(prepared_points(scan, params), params, reference=reference,
-                           scan_index=scan.index)
+                           seed_key=stamp_seed_key(scan.stamp))
 
 
 def prepared_points(scan: Scan, params: DescriptorParams) -> np.ndarray:
@@ -114,21 +114,10 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         descriptor_ms = (time.perf_counter() - started) * 1e3
         match = index.query(occupancy)
         if icp:
-            _apply_icp(match, prepared_points(scan, reference_map.params), reference_map)
+            refine_match(match, prepared_points(scan, reference_map.params), reference_map)
         truth = planar(scan.pose) if scan.pose is not None and np.isfinite(scan.pose).all() else None
         outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, truth))
     return outcomes
-
-
-def _apply_icp(match: MatchResult, points: np.ndarray, reference_map: ReferenceMap) -> None:
-    started = time.perf_counter()
-    refined = refine_with_icp(points, reference_map.cloud(match.reference_index), match.shift_m,
-                              match.rotation_rad, max_correspondence_m=2 * reference_map.params.voxel_size)
-    if refined.accepted:
-        match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
-        match.pose = query_pose_from_alignment(planar(reference_map.poses[match.reference_index]),
-                                               refined.shift_m, refined.rotation_rad)
-    match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
 
 
 def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
@@ -242,6 +231,8 @@ def summarise(records: list[dict], n_references: int) -> dict:
         "rre_std_deg": float(rre[success].std()) if success.any() else float("nan"),
         "success_rate": float(success.sum() / correct.sum()) if correct.any() else float("nan"),
         "f1_max": f1_max(column("confidence"), positive & retrieved, n_positive),
+        "confidence_at_f1_max": confidence_at_f1_max(column("confidence"), positive & retrieved,
+                                                     n_positive),
         "ms_per_query": median(ms_total),
         "ms_descriptor": median(column("ms_descriptor")),
         "ms_global": median(column("ms_global")),
@@ -252,8 +243,18 @@ def summarise(records: list[dict], n_references: int) -> dict:
 def f1_max(confidence: np.ndarray, true_match: np.ndarray, n_positive: int) -> float:
     """Best F1 over confidence thresholds: accepted correct matches are true positives, accepted
     wrong ones (including any match for a query with no true reference) false positives."""
+    return _f1_curve(confidence, true_match, n_positive)[0]
+
+
+def confidence_at_f1_max(confidence: np.ndarray, true_match: np.ndarray, n_positive: int) -> float:
+    """The accept threshold (min_confidence) that reaches f1_max."""
+    return _f1_curve(confidence, true_match, n_positive)[1]
+
+
+def _f1_curve(confidence: np.ndarray, true_match: np.ndarray, n_positive: int
+              ) -> tuple[float, float]:
     if n_positive == 0 or len(confidence) == 0:
-        return float("nan")
+        return float("nan"), float("nan")
     order = np.argsort(-confidence, kind="stable")
     true_positives = np.cumsum(true_match[order])
     accepted = np.arange(1, len(order) + 1)
@@ -261,4 +262,5 @@ def f1_max(confidence: np.ndarray, true_match: np.ndarray, n_positive: int) -> f
     recall = true_positives / n_positive
     with np.errstate(invalid="ignore", divide="ignore"):
         f1 = np.where(precision + recall > 0, 2 * precision * recall / (precision + recall), 0.0)
-    return float(f1.max())
+    best = int(np.argmax(f1))
+    return float(f1[best]), float(confidence[order][best])

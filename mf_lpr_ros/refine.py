@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from .pose import planar, query_pose_from_alignment
+
+if TYPE_CHECKING:
+    from .map_store import ReferenceMap
+    from .search import MatchResult
 
 MIN_FITNESS = 0.3
 MAX_CORRECTION_M = 2.0
@@ -54,3 +62,19 @@ def refine_with_icp(query_points: np.ndarray, reference_points: np.ndarray, shif
         return IcpRefinement(np.asarray(shift_m, dtype=float), rotation_rad, float(result.fitness),
                              False)
     return IcpRefinement(refined_shift, refined_rotation, float(result.fitness), True)
+
+
+def refine_match(match: "MatchResult", points: np.ndarray, reference_map: "ReferenceMap"
+                 ) -> IcpRefinement:
+    """ICP of a match against its reference's stored cloud; updates the match's alignment and
+    pose in place when the refinement is kept, and records its time in match.timings_ms."""
+    started = time.perf_counter()
+    refined = refine_with_icp(points, reference_map.cloud(match.reference_index), match.shift_m,
+                              match.rotation_rad,
+                              max_correspondence_m=2 * reference_map.params.voxel_size)
+    if refined.accepted:
+        match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
+        match.pose = query_pose_from_alignment(planar(reference_map.poses[match.reference_index]),
+                                               refined.shift_m, refined.rotation_rad)
+    match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
+    return refined

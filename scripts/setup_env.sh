@@ -33,9 +33,9 @@ quiet() {
 }
 quiet $pip install -q --upgrade pip
 quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis open3d-cpu
-if ! "$venv/bin/python" -c "import rclpy" 2>/dev/null; then
+if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg" 2>/dev/null; then
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
-    ros-jazzy-nav-msgs ros-jazzy-std-msgs
+    ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs
 fi
 quiet $pip install -q --no-deps -e .
 "$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" \

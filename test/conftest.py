@@ -12,6 +12,10 @@ from mf_lpr_ros.synthetic import make_world
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Tests talk over real DDS: keep them on this host, on a domain of their own.
+os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
 
 def data_root() -> Path | None:
     candidate = Path(os.environ.get("MF_LPR_DATA", REPO.parent / "shared" / "data"))
@@ -24,6 +28,15 @@ def data_dir() -> Path:
     if root is None:
         pytest.skip("real data not found: set MF_LPR_DATA or place shared/data beside the repo")
     return root
+
+
+@pytest.fixture
+def ros_graph():
+    from ros_harness import RosGraph
+
+    graph = RosGraph()
+    yield graph
+    graph.close()
 
 
 @pytest.fixture(scope="session")

@@ -61,8 +61,8 @@ def test_patch_cap_limits_each_patch_and_is_seeded(rng):
 
 def test_reference_descriptor_is_reproducible_per_scan(world):
     cloud = world.points[np.hypot(*world.points[:, :2].T) < 25]
-    a = describe_points(cloud, PARAMS, reference=True, scan_index=4)
-    b = describe_points(cloud, PARAMS, reference=True, scan_index=4)
+    a = describe_points(cloud, PARAMS, reference=True, seed_key=4)
+    b = describe_points(cloud, PARAMS, reference=True, seed_key=4)
     query = describe_points(cloud, PARAMS)
     assert np.array_equal(a, b)
     assert a.sum() < query.sum()

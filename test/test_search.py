@@ -23,7 +23,7 @@ def synthetic_map(world):
     for i, (x, y, yaw) in enumerate([(0, 0, 0.0), (25, 0, 1.0), (0, 25, -2.0), (-25, -10, 2.5),
                                      (20, 20, 0.3)]):
         points, pose = scan_world(world, x, y, yaw, rng)
-        reference_map.append(describe_points(points, PARAMS, reference=True, scan_index=i), pose,
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
                              float(i), i)
     return reference_map
 
@@ -87,7 +87,7 @@ def test_index_follows_a_growing_map(world):
     rng = np.random.default_rng(5)
     for i, x in enumerate((0.0, 30.0)):
         points, pose = scan_world(world, x, 0, 0, rng)
-        reference_map.append(describe_points(points, PARAMS, reference=True, scan_index=i), pose, i)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose, i)
     assert index.sync() == 2 and len(index) == 2
     points, _ = scan_world(world, 29, 1, 0.1, rng)
     assert index.query(describe_points(points, PARAMS)).reference_index == 1

@@ -35,7 +35,7 @@ def pose_message_matrix(message: Any) -> np.ndarray:
     return pose_matrix(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
 
 
-def _open_reader(path: Path):
+def open_bag(path: Path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -64,7 +64,7 @@ class RosbagSequence(Sequence):
         self.name = self.path.stem
         extrinsic = np.eye(4) if extrinsic is None else np.asarray(extrinsic, dtype=np.float64)
         try:
-            with _open_reader(self.path) as reader:
+            with open_bag(self.path) as reader:
                 self.cloud_topic = _pick_topic(reader.connections, (CLOUD_TYPE,), cloud_topic,
                                                "PointCloud2", self.path, required=True)
                 self.pose_topic = _pick_topic(reader.connections, POSE_TYPES, pose_topic,
@@ -124,7 +124,7 @@ class RosbagSequence(Sequence):
         pending: dict[int, Scan] = {}
         next_index = iter(sorted(wanted))
         expected = next(next_index, None)
-        with _open_reader(self.path) as reader:
+        with open_bag(self.path) as reader:
             connections = [c for c in reader.connections if c.topic == self.cloud_topic]
             for bag_position, (connection, _, raw) in enumerate(
                     reader.messages(connections=connections)):

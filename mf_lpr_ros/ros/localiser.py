@@ -1,0 +1,245 @@
+"""localiser node: live scans -> relocalisation poses and loop closures.
+
+    ros2 run mf_lpr_ros localiser --ros-args -p map_path:=/data/site.mfmap \\
+        -r relocalisation:=/initialpose            # re-initialise nav2 AMCL
+    ros2 run mf_lpr_ros localiser --ros-args -p mode:=loop_closure -p pose_source:=odom
+
+Only the newest scan is searched: a scan arriving while the search is busy replaces the waiting
+one (counted as dropped), so a slow search never builds a backlog.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray
+from visualization_msgs.msg import MarkerArray
+
+from ..config import Config
+from ..descriptor import InvalidCloudError
+from ..live import (InvalidPoseError, LiveMatch, Localiser, PoseBuffer, ScanPoseSynchroniser,
+                    relative_transform, relocalised_pose)
+from ..map_store import MapParameterMismatch, ReferenceMap
+from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
+from .messages import (diagnostics_message, loop_closure_message, match_markers,
+                       relocalisation_message)
+
+
+@dataclass
+class _PendingScan:
+    stamp: Time
+    seconds: float
+    points: np.ndarray
+    pose: np.ndarray | None
+    received: float
+
+
+class LocaliserNode(LidarNode):
+    def __init__(self, node_name: str = "localiser", **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        config, explicit = self.declare_config()
+        self.mode = self.typed_parameter("mode", "relocalise", "relocalise or loop_closure",
+                                         lambda v: v in Localiser.MODES,
+                                         f"one of {Localiser.MODES}")
+        map_path = self.typed_parameter("map_path", "", "map file (relocalise mode)")
+        sources = ["none", *sorted(POSE_SOURCES)]
+        pose_source = self.typed_parameter(
+            "pose_source", "none", "poses of the live scans: needed by loop_closure mode (to "
+            "grow the map) and by descriptor.level (roll/pitch)", lambda v: v in sources,
+            f"one of {sources}")
+        self.extrinsic = self.declare_extrinsic()
+        exclude_recent_s = self.typed_parameter(
+            "exclude_recent_s", 30.0, "loop_closure: ignore references younger than this",
+            lambda v: v >= 0, ">= 0")
+        min_score = self.typed_parameter("min_score", 0.0, "accept matches scoring at least this")
+        max_pose_gap_s = self.typed_parameter("max_pose_gap_s", 1.0,
+                                              "largest gap between pose samples interpolated "
+                                              "across", lambda v: v > 0, "> 0")
+        self.publish_markers = self.typed_parameter("publish_markers", True,
+                                                    "publish RViz markers on 'markers'")
+        diagnostics_period_s = self.typed_parameter("diagnostics_period_s", 1.0,
+                                                    "seconds between diagnostics",
+                                                    lambda v: v > 0, "> 0")
+        self.max_points = self.typed_parameter("max_points", 2_000_000,
+                                               "scans with more points are rejected",
+                                               lambda v: v > 0, "> 0")
+        self.sensor_frame_id = self.typed_parameter(
+            "sensor_frame_id", "", "accept only scans in this frame ('' = any)")
+        map_frame_id = self.typed_parameter("map_frame_id", "",
+                                            "frame of published poses ('' = the map's)")
+        self.future_tolerance_s = self.typed_parameter(
+            "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
+            "(0 = no check)", lambda v: v >= 0, ">= 0")
+        self.freeze_parameters()
+
+        if self.mode == "loop_closure" and pose_source == "none":
+            raise ParameterFault("parameter pose_source must name a pose stream in loop_closure "
+                                 "mode (the map grows from the robot's posed scans)")
+        reference_map = self._open_map(map_path, config, explicit)
+        config = Config(reference_map.params, config.search, config.spacing_m)
+        if config.descriptor.level and pose_source == "none":
+            raise ParameterFault("parameter pose_source must name a pose stream: "
+                                 "descriptor.level needs each scan's roll and pitch")
+        try:
+            self.localiser = Localiser(reference_map, config, mode=self.mode,
+                                       exclude_recent_s=exclude_recent_s, min_score=min_score)
+        except ValueError as error:
+            raise ParameterFault(str(error)) from None
+        self.map_frame_id = map_frame_id or reference_map.frame_id or "map"
+
+        self.synchroniser = None
+        if pose_source != "none":
+            self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
+            self.synchroniser = ScanPoseSynchroniser(self.poses, self.extrinsic)
+            self.subscribe_poses(pose_source, self.poses, self._pair)
+        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5))
+        self.relocalisation_pub = self.create_publisher(PoseWithCovarianceStamped,
+                                                        "relocalisation", 10)
+        self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100)
+        self.markers_pub = self.create_publisher(MarkerArray, "markers", 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "diagnostics", 10)
+        self.create_timer(diagnostics_period_s, self._publish_diagnostics)
+
+        self.latencies_ms: deque[float] = deque(maxlen=10_000)
+        self.last: LiveMatch | None = None
+        self._scan_index = 0
+        self._slot: _PendingScan | None = None
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._worker = threading.Thread(target=self._work, name="mf_lpr_search", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"{self.mode}: {self.localiser.reference_count} references, voxel "
+            f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}'")
+
+    def _open_map(self, map_path: str, config: Config, explicit: dict) -> ReferenceMap:
+        if self.mode == "loop_closure":
+            return ReferenceMap(config.descriptor, frame_id="")
+        if not map_path:
+            raise ParameterFault("parameter map_path must name a map file in relocalise mode")
+        reference_map = ReferenceMap.load(map_path)
+        requested = {k.split(".", 1)[1]: v for k, v in explicit.items()
+                     if k.startswith("descriptor.")}
+        if requested:
+            try:
+                reference_map.check_params(config.descriptor)
+            except MapParameterMismatch as error:
+                raise ParameterFault(f"map {map_path}: {error}") from None
+        return reference_map
+
+    # --- input (executor thread) -----------------------------------------------------------
+    def _on_scan(self, message: PointCloud2) -> None:
+        received = time.perf_counter()
+        decoded = self.decode_scan(message, self.max_points, self.sensor_frame_id,
+                                   self.future_tolerance_s)
+        if decoded is None:
+            return
+        seconds, points = decoded
+        if self.synchroniser is None:
+            self._offer(_PendingScan(message.header.stamp, seconds, points, None, received))
+            return
+        self.synchroniser.add_scan(self._scan_index, seconds, points,
+                                   (message.header.stamp, received))
+        self._scan_index += 1
+        self._pair()
+
+    def _pair(self, final: bool = False) -> None:
+        if self.synchroniser is None:
+            return
+        if not self.localiser.map.frame_id and self.pose_frame_id:
+            self.localiser.map.frame_id = self.pose_frame_id
+            self.map_frame_id = self.pose_frame_id
+        for paired in self.synchroniser.ready(final=final):
+            stamp, received = paired.extra
+            if self.mode == "loop_closure":
+                self.localiser.add_reference(paired)
+            self._offer(_PendingScan(stamp, paired.stamp, paired.points, paired.pose, received))
+        self.counters["scans_without_pose"] = self.synchroniser.dropped_without_pose
+
+    def _offer(self, scan: _PendingScan) -> None:
+        with self._wake:
+            if self._slot is not None:
+                self.counters["scans_dropped"] += 1
+            self._slot = scan
+            self._wake.notify()
+
+    # --- search (worker thread) -------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while self._slot is None and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                scan, self._slot = self._slot, None
+            try:
+                self._localise(scan)
+            except (InvalidCloudError, InvalidPoseError, ValueError) as error:
+                self.counters["scans_rejected"] += 1
+                self.log_problem("search", f"scan at {scan.seconds:.3f} not localised: {error}")
+            except Exception as error:  # never let one scan stop the worker
+                self.counters["search_errors"] += 1
+                self.get_logger().error(f"search failed on scan at {scan.seconds:.3f}: "
+                                        f"{type(error).__name__}: {error}")
+
+    def _localise(self, scan: _PendingScan) -> None:
+        result = self.localiser.localise(scan.seconds, scan.points, scan.pose)
+        self.last = result
+        self.counters["scans_searched"] += 1
+        if result.match is None:
+            return
+        match = result.match
+        if not result.accepted:
+            self.counters["matches_rejected"] += 1
+            self.get_logger().debug(f"match rejected at {scan.seconds:.3f}: {result.reason}")
+            return
+        reference_pose = self.localiser.reference_pose(match.reference_index)
+        world_T_base = relocalised_pose(match, reference_pose, self.extrinsic)
+        self.relocalisation_pub.publish(relocalisation_message(
+            scan.stamp, self.map_frame_id, world_T_base, match.covariance))
+        self.loop_closure_pub.publish(loop_closure_message(
+            scan.stamp, match.reference_index, result.reference_stamp, relative_transform(match),
+            match.relative_covariance, match.score, match.confidence))
+        if self.publish_markers:
+            self.markers_pub.publish(match_markers(scan.stamp, self.map_frame_id, world_T_base,
+                                                   reference_pose, True))
+        self.counters["matches_accepted"] += 1
+        self.latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
+
+    def _publish_diagnostics(self) -> None:
+        counters = dict(self.counters)
+        if self.latencies_ms:
+            counters["latency_median_ms"] = round(float(np.median(self.latencies_ms)), 2)
+        counters["references"] = self.localiser.reference_count
+        counters["references_rejected"] = self.localiser.rejected_references
+        warn = "; ".join(text for text in (
+            "scans dropped: search slower than the sensor" if self.counters["scans_dropped"] else "",
+            self.localiser.last_reference_error) if text)
+        self.diagnostics_pub.publish(diagnostics_message(
+            self.get_clock().now().to_msg(), self.get_name(), counters, self.last, warn))
+
+    def finish(self) -> None:
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        self._worker.join(timeout=10.0)
+        self.get_logger().info(
+            f"localiser done: {self.counters['scans_received']} scans, "
+            f"{self.counters['scans_searched']} searched, {self.counters['scans_dropped']} "
+            f"dropped, {self.counters['matches_accepted']} accepted")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(LocaliserNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

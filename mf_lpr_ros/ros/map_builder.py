@@ -1,0 +1,145 @@
+"""map_builder node: reference scans + poses -> a map file on disk.
+
+    ros2 run mf_lpr_ros map_builder --ros-args --params-file config/default.yaml \\
+        -p map_path:=/data/site.mfmap -p pose_source:=odom
+
+Subscribes `points` (PointCloud2) and `odom` (Odometry) or `pose` (PoseStamped /
+PoseWithCovarianceStamped); pairs each scan with the pose interpolated at its stamp; keeps one
+every spacing_m metres; saves the map atomically every save_period_s and at shutdown.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from sensor_msgs.msg import PointCloud2
+
+from ..descriptor import InvalidCloudError
+from ..live import InvalidPoseError, MapBuilder, PoseBuffer, ScanPoseSynchroniser
+from ..map_store import MapFileError, ReferenceMap
+from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
+
+IF_EXISTS = ("error", "append", "overwrite")
+
+
+class MapBuilderNode(LidarNode):
+    def __init__(self, node_name: str = "map_builder", **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        config, _ = self.declare_config()
+        positive = (lambda v: v > 0, "> 0")
+        map_path = self.typed_parameter("map_path", "mf_lpr_map.mfmap", "map file to write",
+                                        lambda v: bool(v), "a file path")
+        if_exists = self.typed_parameter(
+            "if_exists", "error", "when map_path exists: error, append (extend it) or overwrite",
+            lambda v: v in IF_EXISTS, f"one of {IF_EXISTS}")
+        self.pose_source = self.typed_parameter(
+            "pose_source", "odom", "odom (nav_msgs/Odometry on 'odom'), pose (PoseStamped on "
+            "'pose') or pose_with_covariance", lambda v: v in POSE_SOURCES,
+            f"one of {sorted(POSE_SOURCES)}")
+        extrinsic = self.declare_extrinsic()
+        max_pose_gap_s = self.typed_parameter(
+            "max_pose_gap_s", 1.0, "largest gap between pose samples interpolated across",
+            *positive)
+        self.save_period_s = self.typed_parameter("save_period_s", 10.0,
+                                                  "seconds between periodic saves", *positive)
+        keep_clouds = self.typed_parameter("keep_clouds", False,
+                                           "store reference clouds (enables ICP refinement)")
+        self.max_points = self.typed_parameter("max_points", 2_000_000,
+                                               "scans with more points are rejected", *positive)
+        self.sensor_frame_id = self.typed_parameter(
+            "sensor_frame_id", "", "accept only scans in this frame ('' = any)")
+        self.map_frame_id = self.typed_parameter(
+            "map_frame_id", "", "frame of the map ('' = the pose messages' frame)")
+        self.future_tolerance_s = self.typed_parameter(
+            "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
+            "(0 = no check)", lambda v: v >= 0, ">= 0")
+        self.freeze_parameters()
+
+        path = Path(map_path)
+        existing = None
+        if path.exists():
+            if if_exists == "error":
+                raise ParameterFault(f"parameter map_path: {path} exists; set if_exists:=append "
+                                     "to extend it or if_exists:=overwrite to replace it")
+            if if_exists == "append":
+                existing = ReferenceMap.load(path)
+        if not os.access(path.parent if str(path.parent) else Path("."), os.W_OK):
+            self.get_logger().error(f"the folder of map_path {path} is not writable; the map is "
+                                    "kept in memory and saves will be retried")
+        self.builder = MapBuilder(config, path, keep_clouds=keep_clouds, reference_map=existing,
+                                  sensor_frame_id=self.sensor_frame_id,
+                                  frame_id=self.map_frame_id or "map")
+        self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
+        self.synchroniser = ScanPoseSynchroniser(self.poses, extrinsic)
+        self._next_index = int(self.builder.map.source_indices.max()) + 1 \
+            if len(self.builder.map) else 0
+        self.subscribe_poses(self.pose_source, self.poses, self._pair)
+        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(50))
+        self.create_timer(self.save_period_s, self._periodic_save)
+        self.get_logger().info(
+            f"building {path} ({'appending to ' + str(len(existing)) + ' references' if existing else 'new map'}): "
+            f"voxel {config.descriptor.voxel_size} m, spacing {config.spacing_m} m, poses from "
+            f"'{POSE_SOURCES[self.pose_source][0]}'")
+
+    def _on_scan(self, message: PointCloud2) -> None:
+        decoded = self.decode_scan(message, self.max_points, self.sensor_frame_id,
+                                   self.future_tolerance_s)
+        if decoded is None:
+            return
+        if not self.builder.map.sensor_frame_id:
+            self.builder.map.sensor_frame_id = message.header.frame_id
+        stamp, points = decoded
+        self.synchroniser.add_scan(self._next_index, stamp, points)
+        self._next_index += 1
+        self._pair()
+
+    def _pair(self, final: bool = False) -> None:
+        if not self.map_frame_id and self.pose_frame_id:
+            self.builder.map.frame_id = self.pose_frame_id
+        for scan in self.synchroniser.ready(final=final):
+            try:
+                added = self.builder.offer(scan)
+            except (InvalidCloudError, InvalidPoseError, ValueError) as error:
+                self.counters["scans_rejected"] += 1
+                self.log_problem("describe", f"scan at {scan.stamp:.3f} not used: {error}")
+                continue
+            if added is not None:
+                self.counters["references"] = len(self.builder.map)
+                self.get_logger().debug(f"reference {added} at stamp {scan.stamp:.3f}")
+        self.counters["scans_without_pose"] = self.synchroniser.dropped_without_pose
+
+    def _periodic_save(self) -> None:
+        if self.builder.unsaved:
+            self.save()
+
+    def save(self) -> bool:
+        try:
+            count = self.builder.save()
+        except (OSError, MapFileError) as error:
+            self.counters["save_failures"] += 1
+            self.get_logger().error(
+                f"could not save the map to {self.builder.map_path}: {error}; the "
+                f"{len(self.builder.map)} references stay in memory and the save is retried")
+            return False
+        self.counters["saves"] += 1
+        self.get_logger().info(f"saved {count} references to {self.builder.map_path}")
+        return True
+
+    def finish(self) -> None:
+        self._pair(final=True)
+        if self.builder.unsaved or not self.builder.map_path.exists():
+            self.save()
+        dropped = self.synchroniser.dropped_without_pose
+        self.get_logger().info(
+            f"map_builder done: {self.counters['scans_received']} scans, "
+            f"{len(self.builder.map)} references, {dropped} scans without a pose, "
+            f"{self.counters['scans_rejected']} rejected")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MapBuilderNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,130 @@
+"""End to end on the real BALM bag: replayed over DDS into the map builder and the localiser."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray
+
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.live import MapBuilder, PairedScan
+from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.pipeline import build_map
+from mf_lpr_ros.pose import planar
+from mf_lpr_ros.ros.localiser import LocaliserNode
+from mf_lpr_ros.ros.map_builder import MapBuilderNode
+from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message,
+                                     points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds)
+from mf_lpr_ros.ros.replay import replay_bag
+from test_ros_nodes import errors, planar_of_message
+
+CONFIG = preset("handheld")
+EXCLUDE_RECENT_S = 25.0
+
+
+@pytest.fixture(scope="module")
+def balm_bag(data_dir):
+    path = data_dir / "balm_realworld_bag"
+    if not path.exists():
+        pytest.skip(f"{path} not found")
+    return path, RosbagSequence(path)
+
+
+def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag, tmp_path):
+    bag, sequence = balm_bag
+    map_path = tmp_path / "balm.mfmap"
+    builder = ros_graph.start(MapBuilderNode, preset="handheld", map_path=str(map_path))
+    localiser = ros_graph.start(LocaliserNode, preset="handheld", mode="loop_closure",
+                                pose_source="odom", exclude_recent_s=EXCLUDE_RECENT_S)
+    closures = ros_graph.collect(Float64MultiArray, "loop_closure")
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    report = replay_bag(bag, rate=3.0, node=ros_graph.node, wait_for_subscribers=2,
+                        progress=False)
+    assert report.published == {"/points": len(sequence), "/odom": len(sequence)}
+    ros_graph.wait_for(lambda: builder.counters["scans_received"] == len(sequence), 10)
+    ros_graph.wait_for(lambda: localiser.counters["scans_searched"]
+                       + localiser.counters["scans_dropped"] == localiser.counters["scans_received"],
+                       30)
+    ros_graph.stop(builder)
+
+    # The live map equals the offline one built from the same bag.
+    live, offline = ReferenceMap.load(map_path), build_map(sequence, CONFIG, progress=False)
+    assert builder.counters["scans_received"] == len(sequence)
+    assert len(live) == len(offline)
+    assert np.allclose(live.stamps, offline.stamps)
+    assert np.allclose(live.poses, offline.poses, atol=1e-6)
+    assert np.array_equal(live.occupancy_bits, offline.occupancy_bits)
+    assert live.frame_id == "map" and live.sensor_frame_id == "velodyne"
+
+    # Accepted closures are geometrically right, and most revisits are found.
+    truth = planar(sequence.poses)
+    stamp_index = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
+    by_stamp = {round(stamp_to_seconds(m.header.stamp), 3): m for m in poses}
+    closed = set()
+    for closure in map(decode_loop_closure, closures):
+        query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
+        translation, yaw = errors(planar_of_message(by_stamp[round(stamp_to_seconds(
+            closure["query_stamp"]), 3)]), truth[query])
+        assert translation < 0.5 and yaw < 2.0, f"closure of scan {query} is {translation:.2f} m off"
+        closed.add(query)
+    revisits = _revisits(sequence, CONFIG.spacing_m, radius_m=3.0)
+    assert len(revisits) >= 5
+    assert len(closed & revisits) >= 0.5 * len(revisits)
+
+
+def _revisits(sequence: RosbagSequence, spacing_m: float, radius_m: float) -> set[int]:
+    """Scans with a reference (one per spacing_m of travel) older than EXCLUDE_RECENT_S within
+    radius_m."""
+    from mf_lpr_ros.pipeline import select_references
+
+    positions = sequence.poses[:, :3, 3]
+    references = select_references(positions, spacing_m)
+    found = set()
+    for index, stamp in enumerate(sequence.stamps):
+        old = references[sequence.stamps[references] <= stamp - EXCLUDE_RECENT_S]
+        if len(old) and np.linalg.norm(positions[old, :2] - positions[index, :2], axis=1).min() \
+                <= radius_m:
+            found.add(index)
+    return found
+
+
+def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_bag, tmp_path):
+    bag, sequence = balm_bag
+    half = len(sequence) // 2
+    map_path = tmp_path / "first_half.mfmap"
+    builder = MapBuilder(CONFIG, map_path, keep_clouds=True)
+    for scan in sequence.iter_scans(range(half)):
+        builder.offer(PairedScan(scan.index, scan.stamp, scan.points, scan.pose))
+    builder.save()
+
+    node = ros_graph.start(LocaliserNode, preset="handheld", map_path=str(map_path),
+                           pose_source="odom")
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    truth = planar(sequence.poses)
+    queries = list(sequence.iter_scans(range(half, len(sequence), 2)))
+    for scan in queries:
+        stamp = seconds_to_stamp(scan.stamp)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", scan.pose))
+        clouds.publish(points_to_pointcloud2(scan.points, stamp, "velodyne"))
+        searched = node.counters["scans_searched"]
+        assert ros_graph.wait_for(lambda: node.counters["scans_searched"] > searched
+                                  or node.counters["scans_without_pose"] > 0, 10)
+    assert node.counters["scans_without_pose"] == 0
+    index_of = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
+    for message in poses:
+        query = index_of[round(stamp_to_seconds(message.header.stamp), 3)]
+        translation, yaw = errors(planar_of_message(message), truth[query])
+        assert translation < 0.5 and yaw < 2.0
+    mapped = ReferenceMap.load(map_path).poses[:, :2, 3]
+    covered = [scan for scan in queries
+               if np.linalg.norm(mapped - scan.pose[:2, 3], axis=1).min() <= 5.0]
+    assert len(covered) >= 10
+    assert len(poses) >= 0.5 * len(covered), f"{len(poses)} of {len(covered)} relocalised"
