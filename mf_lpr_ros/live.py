@@ -67,6 +67,7 @@ class PoseBuffer:
         self._poses: deque[np.ndarray] = deque()
         self.jumps = 0
         self.out_of_order = 0
+        self._valid_from = -math.inf
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -90,6 +91,7 @@ class PoseBuffer:
                 self.jumps += 1
                 self._stamps.clear()
                 self._poses.clear()
+                self._valid_from = stamp
         self._stamps.append(stamp)
         self._poses.append(pose)
         while self._stamps and self._stamps[0] < stamp - self.horizon_s:
@@ -101,6 +103,8 @@ class PoseBuffer:
 
         final: no later sample will come (shutdown); the end-of-stream rule applies.
         """
+        if stamp < self._valid_from:
+            return "none", None
         if not self._stamps:
             return ("none", None) if final else ("wait", None)
         if stamp > self._stamps[-1] and not final and stamp - self._stamps[-1] <= self.max_gap_s:

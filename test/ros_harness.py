@@ -14,6 +14,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, QoSReliabilityPolicy
 
 
+_DISCOVERY_SETTLE_S = 0.5
+
+
 class RosGraph:
     def __init__(self) -> None:
         self.context = Context()
@@ -63,6 +66,9 @@ class RosGraph:
     def wait_for_subscribers(self, publisher, count: int = 1, timeout_s: float = 15.0) -> None:
         assert self.wait_for(lambda: publisher.get_subscription_count() >= count, timeout_s), \
             f"no subscriber on {publisher.topic_name} after {timeout_s} s"
+        # Discovery is not symmetric: the subscriber may match this writer a moment later,
+        # and a best-effort subscription drops what arrives before.
+        time.sleep(_DISCOVERY_SETTLE_S)
 
     def stop(self, node) -> None:
         """Finish a node (its shutdown work) and remove it from the graph."""

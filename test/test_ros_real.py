@@ -46,9 +46,7 @@ def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag,
                         progress=False)
     assert report.published == {"/points": len(sequence), "/odom": len(sequence)}
     ros_graph.wait_for(lambda: builder.counters["scans_received"] == len(sequence), 10)
-    ros_graph.wait_for(lambda: localiser.counters["scans_searched"]
-                       + localiser.counters["scans_dropped"] == localiser.counters["scans_received"],
-                       30)
+    ros_graph.wait_for(localiser.is_idle, 30)
     ros_graph.stop(builder)
 
     # The live map equals the offline one built from the same bag.

@@ -114,6 +114,7 @@ class LocaliserNode(LidarNode):
         self._slot: _PendingScan | None = None
         self._wake = threading.Condition()
         self._stopping = False
+        self._busy = False
         self._worker = threading.Thread(target=self._work, name="mf_lpr_search", daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -164,6 +165,12 @@ class LocaliserNode(LidarNode):
             self._offer(_PendingScan(stamp, paired.stamp, paired.points, paired.pose, received))
         self.counters["scans_without_pose"] = self.synchroniser.dropped_without_pose
 
+    def is_idle(self) -> bool:
+        """No scan waiting for its pose, for the search, or being searched."""
+        with self._wake:
+            waiting = self.synchroniser.pending if self.synchroniser is not None else 0
+            return self._slot is None and not self._busy and waiting == 0
+
     def _offer(self, scan: _PendingScan) -> None:
         with self._wake:
             if self._slot is not None:
@@ -180,6 +187,7 @@ class LocaliserNode(LidarNode):
                 if self._stopping:
                     return
                 scan, self._slot = self._slot, None
+                self._busy = True
             try:
                 self._localise(scan)
             except (InvalidCloudError, InvalidPoseError, ValueError) as error:
@@ -189,6 +197,9 @@ class LocaliserNode(LidarNode):
                 self.counters["search_errors"] += 1
                 self.get_logger().error(f"search failed on scan at {scan.seconds:.3f}: "
                                         f"{type(error).__name__}: {error}")
+            finally:
+                with self._wake:
+                    self._busy = False
 
     def _localise(self, scan: _PendingScan) -> None:
         result = self.localiser.localise(scan.seconds, scan.points, scan.pose)

@@ -20,6 +20,7 @@ from ..datasets.base import DatasetError
 from ..datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
 
 DEFAULT_TYPES = (CLOUD_TYPE, *POSE_TYPES, "tf2_msgs/msg/TFMessage")
+_DISCOVERY_SETTLE_S = 0.5
 
 
 @dataclass
@@ -113,6 +114,9 @@ def _wait_for_subscribers(publishers: dict, count: int, timeout_s: float, node: 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if all(p.get_subscription_count() >= count for p in publishers.values()):
+            # Discovery is not symmetric: give subscribers a moment to match these writers,
+            # or best-effort ones drop the first messages.
+            time.sleep(_DISCOVERY_SETTLE_S)
             return
         time.sleep(0.05)
     waiting = {t: p.get_subscription_count() for t, p in publishers.items()}

@@ -1,0 +1,128 @@
+"""The ROS-free logic of the live nodes: pose buffering, pairing, map building, acceptance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.live import (InvalidPoseError, Localiser, MapBuilder, PairedScan, PoseBuffer,
+                             ScanPoseSynchroniser, relocalised_pose)
+from mf_lpr_ros.map_store import MapParameterMismatch, ReferenceMap
+from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.synthetic import route, scan_world
+
+CONFIG = preset("kitti")
+
+
+def pose_at(x: float, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+    return pose_matrix(np.array([x, y, 0.0]), quaternion_from_yaw(yaw))
+
+
+def test_pose_buffer_interpolates_waits_and_refuses():
+    buffer = PoseBuffer(max_gap_s=1.0)
+    assert buffer.lookup(0.5)[0] == "wait"
+    buffer.add(0.0, pose_at(0.0))
+    buffer.add(1.0, pose_at(2.0, yaw=0.2))
+    status, pose = buffer.lookup(0.25)
+    assert status == "ok" and pose[0, 3] == pytest.approx(0.5)
+    assert math.atan2(pose[1, 0], pose[0, 0]) == pytest.approx(0.05)
+    assert buffer.lookup(1.5) == ("wait", None)           # a later sample may still come
+    assert buffer.lookup(3.0)[0] == "none"                # too far past the newest sample
+    assert buffer.lookup(1.5, final=True)[0] == "ok"      # end of stream: the last sample
+    assert buffer.lookup(-5.0)[0] == "none"
+    with pytest.raises(InvalidPoseError, match="not after"):
+        buffer.add(0.5, pose_at(1.0))
+    nan_pose = pose_at(1.0)
+    nan_pose[0, 3] = np.nan
+    with pytest.raises(InvalidPoseError, match="NaN"):
+        buffer.add(2.0, nan_pose)
+    sheared = pose_at(1.0)
+    sheared[0, 1] = 0.5
+    with pytest.raises(InvalidPoseError, match="orthonormal"):
+        buffer.add(2.0, sheared)
+
+
+def test_a_pose_jump_restarts_the_buffer():
+    buffer = PoseBuffer(max_gap_s=1.0, max_speed_mps=30.0)
+    buffer.add(0.0, pose_at(0.0))
+    buffer.add(0.1, pose_at(1.0))
+    buffer.add(0.2, pose_at(500.0))                       # 5 km/s: a relocalisation jump
+    assert buffer.jumps == 1 and len(buffer) == 1
+    assert buffer.lookup(0.15, final=True)[0] == "none"   # never interpolated across the jump
+
+
+def test_synchroniser_pairs_in_order_and_counts_drops():
+    buffer = PoseBuffer(max_gap_s=1.0)
+    extrinsic = pose_at(0.5)
+    synchroniser = ScanPoseSynchroniser(buffer, extrinsic, max_pending=3)
+    points = np.zeros((1, 3), np.float32)
+    for index, stamp in enumerate([0.2, 0.4, 0.6]):
+        synchroniser.add_scan(index, stamp, points, extra=f"scan{index}")
+    assert synchroniser.ready() == []                      # no pose yet: all wait
+    buffer.add(0.0, pose_at(0.0))
+    buffer.add(0.5, pose_at(1.0))
+    paired = synchroniser.ready()
+    assert [p.index for p in paired] == [0, 1] and paired[1].extra == "scan1"
+    assert paired[0].pose[0, 3] == pytest.approx(0.4 + 0.5)   # interpolated, then extrinsic
+    for index in range(3, 7):
+        synchroniser.add_scan(index, 0.7 + index, points)
+    assert synchroniser.dropped_without_pose == 2 and synchroniser.pending == 3  # oldest go
+    assert synchroniser.ready(final=True) == []
+    assert synchroniser.dropped_without_pose == 5
+
+
+def test_map_builder_keeps_one_reference_per_spacing_and_survives_a_failed_save(world, tmp_path):
+    rng = np.random.default_rng(1)
+    builder = MapBuilder(CONFIG, tmp_path / "m.mfmap")
+    kept = []
+    for index, x in enumerate(np.arange(0.0, 10.0, 0.5)):
+        points, pose = scan_world(world, x, 0.0, 0.0, rng)
+        kept.append(builder.offer(PairedScan(index, float(index), points, pose)))
+    assert [k is not None for k in kept].count(True) == 5   # x = 0, 2, 4, 6, 8
+    assert builder.save() == 5 and builder.unsaved == 0
+    points, pose = scan_world(world, 20.0, 0.0, 0.0, rng)
+    builder.offer(PairedScan(99, 99.0, points, pose))
+    (tmp_path / "a-file").write_text("")
+    builder.map_path = tmp_path / "a-file" / "m.mfmap"          # its folder cannot exist
+    with pytest.raises(OSError):
+        builder.save()
+    assert builder.unsaved == 1 and len(builder.map) == 6
+    assert len(ReferenceMap.load(tmp_path / "m.mfmap")) == 5
+
+
+def test_loop_closure_localiser_only_searches_old_enough_references(world):
+    rng = np.random.default_rng(5)
+    localiser = Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="loop_closure",
+                          exclude_recent_s=10.0)
+    trajectory = route(20)
+    results = []
+    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:3]])):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        results.append(localiser.localise(float(index), points, pose))
+        localiser.add_reference(PairedScan(index, float(index), points, pose))
+    assert results[0].match is None and results[0].reason == "no reference to search yet"
+    assert all(r.references_searched == max(0, i - 10 + 1) for i, r in enumerate(results))
+    revisit = results[20]
+    assert revisit.accepted and revisit.match.reference_index == 0
+    assert np.hypot(*(revisit.match.pose[:2] - trajectory[0][:2])) < 0.5
+
+
+def test_localiser_refuses_a_map_with_other_parameters(world):
+    other = ReferenceMap(preset("default").descriptor)
+    with pytest.raises(MapParameterMismatch, match="voxel_size"):
+        Localiser(other, CONFIG)
+    with pytest.raises(ValueError, match="mode"):
+        Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="slam")
+
+
+def test_relocalised_pose_removes_the_extrinsic():
+    from mf_lpr_ros.search import MatchResult
+
+    match = MatchResult(0, 1.0, 1.0, np.zeros(2), 0.0, np.array([10.0, 5.0, math.pi / 2]),
+                        np.eye(3), np.eye(3), np.array([0]))
+    base_T_sensor = pose_at(1.0)                           # sensor 1 m ahead of the base
+    world_T_base = relocalised_pose(match, pose_at(0.0), base_T_sensor)
+    assert world_T_base[:2, 3] == pytest.approx([10.0, 4.0])   # facing +y: base is 1 m behind
