@@ -273,6 +273,8 @@ class Localiser:
         self.rejected_references = 0
         self.last_reference_error = ""
         self.verify = config.search.verify_fitness > 0
+        if self.verify:
+            _require_open3d()
         if self.verify and mode == "relocalise" and not reference_map.has_clouds:
             raise ValueError("search.verify_fitness needs a map that keeps reference clouds "
                              "(build it with keep_clouds / --keep-clouds), or set it to 0")
@@ -320,8 +322,10 @@ class Localiser:
                                            side="right"))
         match = self.index.query(occupancy, n_active) if n_active else None
         reference_stamp = float(self.map.stamps[match.reference_index]) if match else math.nan
+        # Verification is the costly step: only matches that pass the cheap tests get it.
         fitness = refine_match(match, points, self.map).fitness \
-            if match is not None and self.verify else math.nan
+            if match is not None and self.verify and match.confidence >= \
+            self.search.min_confidence and match.score >= self.min_score else math.nan
         if match is None:
             return LiveMatch(stamp, None, False, "no reference to search yet", descriptor_ms,
                              n_active)
@@ -340,6 +344,16 @@ class Localiser:
 
     def reference_pose(self, index: int) -> np.ndarray:
         return np.array(self.map.poses[index])
+
+
+def _require_open3d() -> None:
+    """Import open3d now (about a second) rather than at the first match, and fail at start-up
+    when it is missing."""
+    try:
+        import open3d  # noqa: F401
+    except ImportError as error:
+        raise ValueError(f"search.verify_fitness needs open3d, which failed to import ({error}); "
+                         "install open3d-cpu or set search.verify_fitness to 0") from error
 
 
 def relocalised_pose(match: MatchResult, reference_pose: np.ndarray,

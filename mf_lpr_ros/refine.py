@@ -17,6 +17,9 @@ if TYPE_CHECKING:
 MIN_FITNESS = 0.3
 MAX_CORRECTION_M = 2.0
 MAX_CORRECTION_RAD = np.radians(5.0)
+# ICP cost grows faster than linearly with the query's size (300 ms at 7k points, 40 ms at 3k
+# on BALM scans); an even subsample keeps the fitness fraction and the alignment.
+MAX_QUERY_POINTS = 3000
 
 
 @dataclass
@@ -69,6 +72,7 @@ def refine_match(match: "MatchResult", points: np.ndarray, reference_map: "Refer
     """ICP of a match against its reference's stored cloud; updates the match's alignment and
     pose in place when the refinement is kept, and records its time in match.timings_ms."""
     started = time.perf_counter()
+    points = points[::max(1, -(-len(points) // MAX_QUERY_POINTS))]
     refined = refine_with_icp(points, reference_map.cloud(match.reference_index), match.shift_m,
                               match.rotation_rad,
                               max_correspondence_m=2 * reference_map.params.voxel_size)
