@@ -154,9 +154,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .ros import demo
 
-    return run_demo(Path(args.out), seed=args.seed, progress=not args.quiet)
+    out = Path(args.out)
+    if args.data:
+        bag = Path(args.data)
+        chosen = demo.choose_preset(bag) if args.preset == "auto" else args.preset
+        out.mkdir(parents=True, exist_ok=True)
+        rows = demo.run_bag_loop_closure(bag, chosen, out / f"{bag.stem}.mfmap", rate=args.rate,
+                                         progress=not args.quiet)
+        print()
+        print(demo.format_rows(rows))
+        return 0
+    demo.run_demo(out, args.worlds, progress=not args.quiet, stride=args.stride)
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -222,9 +233,22 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("map")
     info.set_defaults(handler=cmd_info)
 
-    demo = commands.add_parser("demo", help="build a map of a generated world and relocalise in it")
-    demo.add_argument("--out", default="out/demo", help="folder for the map, results and figure")
-    demo.add_argument("--seed", type=int, default=7)
+    demo = commands.add_parser(
+        "demo", help="the whole system on simulated worlds, or on a real bag, through the nodes",
+        description="Simulates urban and forest worlds (two days each, written as ROS 2 bags under "
+                    "--out and reused), streams day 1 through map_builder and day 2 through the "
+                    "localiser over DDS, and prints recall, pose errors, rejection of unseen "
+                    "places and latency, with a figure. With --data BAG: map_builder and the "
+                    "localiser in loop_closure mode on one replay of a real bag.")
+    demo.add_argument("--out", default="out/demo", help="folder for bags, maps and the figure")
+    demo.add_argument("--worlds", nargs="+", default=["urban", "forest"],
+                      choices=["urban", "forest"])
+    demo.add_argument("--stride", type=int, default=1,
+                      help="keep every N-th simulated scan (a quicker demo)")
+    demo.add_argument("--data", help="a real bag with PointCloud2 and poses (loop_closure mode)")
+    demo.add_argument("--preset", default="auto", help="with --data: a preset, or auto "
+                      "(handheld for close-range scans, else kitti)")
+    demo.add_argument("--rate", type=float, default=1.0, help="with --data: replay speed-up")
     demo.add_argument("--quiet", action="store_true")
     demo.set_defaults(handler=cmd_demo)
     return parser

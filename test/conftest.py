@@ -32,7 +32,7 @@ def data_dir() -> Path:
 
 @pytest.fixture
 def ros_graph():
-    from ros_harness import RosGraph
+    from mf_lpr_ros.ros.graph import RosGraph
 
     graph = RosGraph()
     yield graph

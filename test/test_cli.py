@@ -70,13 +70,19 @@ def test_errors_are_reported_not_raised(tmp_path, capsys):
 
 
 def test_reduced_demo_runs_end_to_end(tmp_path, capsys):
-    from mf_lpr_ros.demo import run_demo
-
-    assert run_demo(tmp_path, seed=3, n_scans=40, progress=False) == 0
+    """Both simulated worlds, every 5th scan, through map_builder and the localiser over DDS."""
+    assert main(["demo", "--out", str(tmp_path), "--stride", "5", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "recall@1" in printed and (tmp_path / "demo.png").stat().st_size > 10000
-    recall = float(printed.split("recall@1 (pose within 3 m):")[1].split()[0])
-    assert recall >= 0.9
+    assert "recall@1" in printed and "unseen scans rejected" in printed
+    assert (tmp_path / "demo.png").stat().st_size > 50_000
+    for world in ("urban", "forest"):
+        assert len(ReferenceMap.load(tmp_path / world / "map.mfmap")) > 10
+        assert (tmp_path / world / "day1" / "metadata.yaml").exists()
+    row = next(line for line in printed.splitlines() if line.startswith("| recall@1"))
+    assert all(float(value) >= 0.8 for value in row.split("|")[2:4])
+    row = next(line for line in printed.splitlines() if line.startswith("| unseen scans rejected"))
+    assert all(float(value) >= 0.95 for value in row.split("|")[2:4])
+
 
 
 def test_icp_refinement_needs_clouds_and_tightens_poses(traversals, tmp_path, capsys):

@@ -126,3 +126,17 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
                if np.linalg.norm(mapped - scan.pose[:2, 3], axis=1).min() <= 5.0]
     assert len(covered) >= 10
     assert len(poses) >= 0.5 * len(covered), f"{len(poses)} of {len(covered)} relocalised"
+
+
+def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
+    from mf_lpr_ros.cli import main
+
+    bag, _ = balm_bag
+    assert main(["demo", "--data", str(bag), "--out", str(tmp_path), "--rate", "4",
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "preset handheld" in printed                 # chosen from the scans' range
+    assert len(ReferenceMap.load(tmp_path / "balm_realworld_bag.mfmap")) == 55
+    row = next(line for line in printed.splitlines() if "within 0.5 m and 2 deg" in line)
+    correct, total = (int(n) for n in row.split("|")[2].split(" of "))
+    assert total >= 3 and correct == total

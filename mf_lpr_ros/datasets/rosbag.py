@@ -69,6 +69,8 @@ class RosbagSequence(Sequence):
                                                "PointCloud2", self.path, required=True)
                 self.pose_topic = _pick_topic(reader.connections, POSE_TYPES, pose_topic,
                                               "pose", self.path, required=False)
+                self.pose_type = next((c.msgtype for c in reader.connections
+                                       if c.topic == self.pose_topic), None)
                 cloud_stamps, self.frame_id = self._index_clouds(reader)
                 pose_stamps, poses = self._read_poses(reader)
         except DatasetError:

@@ -36,10 +36,13 @@ _LOG_REPEAT_S = 2.0
 _SPIN_TIMEOUT_S = 0.1
 
 
-def sensor_qos(depth: int) -> QoSProfile:
-    """Best effort: matches sensor drivers (best effort) and recorders (reliable) alike."""
+def sensor_qos(depth: int, reliable: bool = False) -> QoSProfile:
+    """Best effort by default: it matches sensor drivers (best effort) and recorders (reliable)
+    alike, but drops messages under load. Reliable loses nothing from reliable publishers
+    (bag replays, most drivers) and cannot connect to best-effort ones."""
     return QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=QoSReliabilityPolicy.BEST_EFFORT)
+                      reliability=QoSReliabilityPolicy.RELIABLE if reliable
+                      else QoSReliabilityPolicy.BEST_EFFORT)
 
 
 class ParameterFault(ConfigError):
@@ -114,8 +117,13 @@ class LidarNode(Node):
                                      "the node to change them"))
 
     # --- inputs -------------------------------------------------------------------------
+    def declare_reliable_qos(self) -> bool:
+        return self.typed_parameter(
+            "reliable_qos", False, "subscribe reliably (lossless from reliable publishers such "
+            "as bag replays; cannot connect to best-effort publishers)")
+
     def subscribe_poses(self, source: str, buffer: PoseBuffer,
-                        on_pose: Callable[[], None]) -> None:
+                        on_pose: Callable[[], None], reliable: bool = False) -> None:
         topic, message_type = POSE_SOURCES[source]
 
         def received(message) -> None:
@@ -131,7 +139,7 @@ class LidarNode(Node):
             on_pose()
 
         self.pose_frame_id = ""
-        self.create_subscription(message_type, topic, received, sensor_qos(100))
+        self.create_subscription(message_type, topic, received, sensor_qos(100, reliable))
 
     def decode_scan(self, message: PointCloud2, max_points: int, expected_frame: str,
                     future_tolerance_s: float) -> tuple[float, np.ndarray] | None:

@@ -78,6 +78,7 @@ class LocaliserNode(LidarNode):
         self.future_tolerance_s = self.typed_parameter(
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
+        reliable = self.declare_reliable_qos()
         self.freeze_parameters()
 
         if self.mode == "loop_closure" and pose_source == "none":
@@ -99,8 +100,8 @@ class LocaliserNode(LidarNode):
         if pose_source != "none":
             self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
             self.synchroniser = ScanPoseSynchroniser(self.poses, self.extrinsic)
-            self.subscribe_poses(pose_source, self.poses, self._pair)
-        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5))
+            self.subscribe_poses(pose_source, self.poses, self._pair, reliable)
+        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5, reliable))
         self.relocalisation_pub = self.create_publisher(PoseWithCovarianceStamped,
                                                         "relocalisation", 10)
         self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100)

@@ -54,6 +54,7 @@ class MapBuilderNode(LidarNode):
         self.future_tolerance_s = self.typed_parameter(
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
+        reliable = self.declare_reliable_qos()
         self.freeze_parameters()
 
         path = Path(map_path)
@@ -74,8 +75,8 @@ class MapBuilderNode(LidarNode):
         self.synchroniser = ScanPoseSynchroniser(self.poses, extrinsic)
         self._next_index = int(self.builder.map.source_indices.max()) + 1 \
             if len(self.builder.map) else 0
-        self.subscribe_poses(self.pose_source, self.poses, self._pair)
-        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(50))
+        self.subscribe_poses(self.pose_source, self.poses, self._pair, reliable)
+        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(50, reliable))
         self.create_timer(self.save_period_s, self._periodic_save)
         self.get_logger().info(
             f"building {path} ({'appending to ' + str(len(existing)) + ' references' if existing else 'new map'}): "

@@ -1,5 +1,6 @@
-"""A real ROS 2 graph for tests: an rclpy context, an executor thread, a helper node that
-publishes and collects over Fast DDS (no mocks, no intra-process shortcuts)."""
+"""An in-process ROS 2 graph: its own rclpy context, an executor thread, our nodes and a driver
+node that publishes and collects over Fast DDS. The demo and the tests drive the nodes with it
+exactly as separate processes would (no intra-process shortcuts)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any, Callable
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, QoSReliabilityPolicy
 
@@ -18,11 +19,12 @@ _DISCOVERY_SETTLE_S = 0.5
 
 
 class RosGraph:
-    def __init__(self) -> None:
+    def __init__(self, ros_args: list[str] | None = None) -> None:
+        """ros_args: rclpy arguments for every node here (e.g. --ros-args -r points:=/lidar)."""
         self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("mf_lpr_test_driver", context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        rclpy.init(args=["mf_lpr", *(ros_args or [])], context=self.context)
+        self.node = rclpy.create_node("mf_lpr_driver", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.nodes: list[Any] = []
         self._thread = threading.Thread(target=self._spin, daemon=True)
