@@ -213,3 +213,16 @@ def test_map_builder_refuses_to_overwrite_unless_told(ros_graph, synthetic_map, 
         ros_graph.start(MapBuilderNode, map_path=str(synthetic_map[0]))
     with pytest.raises(ParameterFault, match="pose_source"):
         ros_graph.start(MapBuilderNode, map_path=str(tmp_path / "m.mfmap"), pose_source="gps")
+
+
+def test_reliable_qos_receives_from_reliable_publishers_only(ros_graph, synthetic_map):
+    path, queries = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path), reliable_qos=True)
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    best_effort = ros_graph.publisher(PointCloud2, "points", reliable=False)
+    reliable = ros_graph.publisher(PointCloud2, "points", reliable=True)
+    ros_graph.wait_for_subscribers(reliable)
+    assert best_effort.get_subscription_count() == 0    # incompatible QoS: never connected
+    reliable.publish(points_to_pointcloud2(queries[0][0], seconds_to_stamp(7000.0), "velodyne"))
+    assert ros_graph.wait_for(lambda: len(poses) == 1)
+    assert node.counters["scans_received"] == 1

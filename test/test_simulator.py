@@ -1,0 +1,87 @@
+"""The LiDAR simulator: geometry of the ray casting, determinism, the bags it writes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.pose import planar, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.simulator import (VLP16, WORLDS, Scene, SensorModel, _box_hits,
+                                  _cylinder_hits, _sphere_hits, cast, urban_scene, write_bag)
+
+EXACT = SensorModel("test", (-10.0, 0.0, 10.0), azimuth_step_deg=1.0, range_noise_m=0.0,
+                    dropout=0.0, max_range_m=60.0)
+
+
+def sensor_pose(x: float, y: float, yaw: float, height: float = 1.8) -> np.ndarray:
+    return pose_matrix(np.array([x, y, height]), quaternion_from_yaw(yaw))
+
+
+def test_rays_hit_each_primitive_at_the_right_range():
+    scene = Scene("test", cylinders=np.array([[10.0, 0.0, 0.5, 5.0]]),
+                  boxes=np.array([[0.0, 20.0, 1.0, 3.0, 0.0, 4.0]]),
+                  spheres=np.array([[-15.0, 0.0, 1.8, 2.0]]), movable=np.zeros(1, bool))
+    points = cast(scene, EXACT, sensor_pose(0.0, 0.0, 0.0), np.random.default_rng(0))
+    level = points[np.abs(points[:, 2]) < 1e-6]
+    azimuth = np.degrees(np.arctan2(level[:, 1], level[:, 0])).round().astype(int) % 360
+    ranges = dict(zip(azimuth, np.hypot(level[:, 0], level[:, 1])))
+    assert ranges[0] == pytest.approx(9.5)        # cylinder face
+    assert ranges[90] == pytest.approx(17.0)      # box face (half-size 3 along y)
+    assert ranges[180] == pytest.approx(13.0)     # sphere front
+    assert 45 not in ranges                        # open sky at sensor height
+    assert points[:, 2].min() >= -1.8 - 1e-5                         # nothing below the ground
+    assert (np.abs(points[:, 2] + 1.8) < 1e-5).sum() > 300          # the -10 deg ring on it
+
+
+def test_culling_by_azimuth_matches_testing_every_ray(world_seed=5):
+    """Against the brute force: every primitive against every ray."""
+    scene = urban_scene(world_seed)
+    pose = sensor_pose(50.0, 0.0, 0.3)
+    sensor = SensorModel("v", VLP16.elevations_deg, 1.0, 0.0, 0.0, 80.0)
+    culled = cast(scene, sensor, pose, np.random.default_rng(0))
+    directions = sensor.directions() @ pose[:3, :3].T
+    origin = pose[:3, 3]
+    with np.errstate(divide="ignore"):
+        distance = np.where(directions[:, 2] < 0, -origin[2] / directions[:, 2], np.inf)
+    local = scene.near(origin[0], origin[1], sensor.max_range_m)
+    for array, hits in ((local.cylinders, _cylinder_hits), (local.boxes, _box_hits),
+                        (local.spheres, _sphere_hits)):
+        pairs = np.repeat(array, len(directions), axis=0)
+        rays = np.tile(directions, (len(array), 1))[:, None, :]
+        distance = np.minimum(distance, hits(pairs, origin, rays).reshape(len(array), -1).min(0))
+    keep = distance <= sensor.max_range_m
+    brute = ((directions[keep] * distance[keep, None]) @ pose[:3, :3]).astype(np.float32)
+    assert len(culled) == len(brute) > 5000
+    assert np.allclose(culled, brute, atol=1e-4)
+
+
+def test_worlds_are_deterministic_and_day_two_leaves_the_map():
+    for name, make in WORLDS.items():
+        a, b = make(), make()
+        assert np.array_equal(a.second, b.second) and np.array_equal(a.scene.boxes, b.scene.boxes)
+        first, second = a.first[:, :2], a.second[:, :2]
+        nearest = np.linalg.norm(second[:, None] - first[None], axis=2).min(1)
+        assert (nearest > 15.0).sum() >= 20, f"{name}: no unseen stretch"
+        assert (nearest < 4.0).sum() >= 20, f"{name}: no revisited stretch"
+    urban = WORLDS["urban"]()
+    assert len(urban.second_day.boxes) < len(urban.scene.boxes)        # some cars gone
+    rng = np.random.default_rng(0)
+    one = cast(urban.scene, urban.sensor, sensor_pose(*urban.first[5]), rng)
+    assert 3000 < len(one) < len(urban.sensor.directions())
+
+
+def test_bag_holds_scans_and_poses_of_the_trajectory(tmp_path):
+    urban = WORLDS["urban"]()
+    trajectory = urban.first[:6]
+    write_bag(tmp_path / "day", urban.scene, urban.sensor, trajectory, seed=3, progress=False)
+    sequence = RosbagSequence(tmp_path / "day")
+    assert len(sequence) == 6 and sequence.frame_id == "lidar"
+    assert np.allclose(np.diff(sequence.stamps), 0.1)
+    assert np.allclose(planar(sequence.poses), trajectory, atol=1e-9)
+    scans = list(sequence.iter_scans())
+    again = cast(urban.scene, urban.sensor, sensor_pose(*trajectory[0]), np.random.default_rng(3))
+    assert np.array_equal(scans[0].points, again)
+    assert all(math.isclose(s.pose[2, 3], 1.8) for s in scans)
