@@ -80,6 +80,15 @@ def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthe
     assert node.counters["matches_accepted"] == len(queries)
 
 
+def _relocaliser(ros_graph, map_path):
+    """A relocalise-mode localiser on map_path, its published poses, a publisher of scans."""
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(map_path))
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    publisher = ros_graph.publisher(PointCloud2, "points")
+    ros_graph.wait_for_subscribers(publisher)
+    return node, poses, publisher
+
+
 def _cloud(points: np.ndarray, stamp: float, *, dtype: str = "<f4", extra_bytes: int = 0,
            fields: str = "xyz", big_endian: bool = False) -> PointCloud2:
     """A PointCloud2 with a chosen coordinate type, byte order and padding per point."""
@@ -102,10 +111,7 @@ def _cloud(points: np.ndarray, stamp: float, *, dtype: str = "<f4", extra_bytes:
 
 def test_hostile_clouds_are_rejected_and_the_localiser_keeps_answering(ros_graph, synthetic_map):
     path, queries = synthetic_map
-    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path))
-    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
-    publisher = ros_graph.publisher(PointCloud2, "points")
-    ros_graph.wait_for_subscribers(publisher)
+    node, poses, publisher = _relocaliser(ros_graph, path)
     points, truth = queries[3]
     stamp = iter(np.arange(1000.0, 2000.0))
 
@@ -140,10 +146,7 @@ def test_hostile_clouds_are_rejected_and_the_localiser_keeps_answering(ros_graph
 
 def test_newest_scan_only_under_a_burst(ros_graph, synthetic_map):
     path, queries = synthetic_map
-    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path))
-    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
-    publisher = ros_graph.publisher(PointCloud2, "points")
-    ros_graph.wait_for_subscribers(publisher)
+    node, poses, publisher = _relocaliser(ros_graph, path)
     messages = [points_to_pointcloud2(queries[i % len(queries)][0], seconds_to_stamp(3000.0 + i),
                                       "velodyne") for i in range(40)]
     for message in messages:
