@@ -41,6 +41,9 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
                                 f"(fields: {sorted(fields)})")
     height, width = int(cloud.height), int(cloud.width)
     point_step, row_step = int(cloud.point_step), int(cloud.row_step)
+    if height < 0 or width < 0 or row_step < 0:
+        raise InvalidCloudError(f"PointCloud2 height {height}, width {width} and row_step "
+                                f"{row_step} must not be negative")
     n_points = height * width
     if n_points == 0:
         raise InvalidCloudError("PointCloud2 is empty (width * height = 0)")
@@ -63,6 +66,12 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
         names.append(axis)
         formats.append(byte_order + _COORDINATE_TYPES[field.datatype])
         offsets.append(int(field.offset))
+    spans = sorted((offset, offset + np.dtype(fmt).itemsize, name)
+                   for offset, fmt, name in zip(offsets, formats, names))
+    for (_, end, first), (start, _, second) in zip(spans, spans[1:]):
+        if start < end:
+            raise InvalidCloudError(f"PointCloud2 fields {first!r} and {second!r} overlap "
+                                    f"(offsets {dict(zip(names, offsets))})")
     if height > 1 and row_step < width * point_step:
         raise InvalidCloudError(f"PointCloud2 row_step {row_step} is smaller than width * "
                                 f"point_step = {width * point_step}")

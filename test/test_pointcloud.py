@@ -85,3 +85,15 @@ def test_real_velodyne_layout_from_the_bag(data_dir):
     extent_bag = np.percentile(np.abs(from_bag), 95, axis=0)
     extent_kitti = np.percentile(np.abs(next(kitti.iter_scans([10])).points), 95, axis=0)
     np.testing.assert_allclose(extent_bag, extent_kitti, rtol=0.2)
+
+
+@pytest.mark.parametrize("change,problem", [
+    ({"height": -1, "width": -1}, "negative"),
+    ({"fields": [field("x", 0), field("y", 2), field("z", 8)]}, "overlap"),
+])
+def test_impossible_layouts_are_named(change, problem):
+    message = cloud(POINTS, extra=False)
+    for key, value in change.items():
+        setattr(message, key, value)
+    with pytest.raises(InvalidCloudError, match=problem):
+        pointcloud2_to_xyz(message)
