@@ -275,6 +275,7 @@ def _crc32(array: np.ndarray) -> int:
 def _write_atomically(path: Path, head: bytes, arrays: dict[str, np.ndarray],
                       table: dict[str, dict[str, Any]]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
     temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with open(temporary, "wb") as handle:
@@ -293,3 +294,17 @@ def _write_atomically(path: Path, head: bytes, arrays: dict[str, np.ndarray],
         os.fsync(directory)
     finally:
         os.close(directory)
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Temporary files left by writers that were killed mid-save (their process is gone)."""
+    for stale in path.parent.glob(f".{path.name}.tmp-*"):
+        try:
+            pid = int(stale.name.rsplit("-", 1)[1])
+            os.kill(pid, 0)
+        except ValueError:
+            continue
+        except ProcessLookupError:
+            stale.unlink(missing_ok=True)
+        except PermissionError:
+            continue

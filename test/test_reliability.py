@@ -1,0 +1,204 @@
+"""Faults and hostile inputs: damaged map files, kills while saving, a full disk, bad poses,
+and memory under repeated searches."""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import resource
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.live import Localiser
+from mf_lpr_ros.map_store import MapFileError, ReferenceMap
+from mf_lpr_ros.ros.map_builder import MapBuilderNode
+from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
+from mf_lpr_ros.synthetic import scan_world
+from test_map_store import make_map
+
+BIN = os.path.dirname(sys.executable)
+
+
+def test_any_truncation_or_flipped_byte_fails_loudly_at_load(tmp_path, rng):
+    path = tmp_path / "a.mfmap"
+    original = make_map(rng, n=3, clouds=True)
+    original.save(path)
+    data = path.read_bytes()
+    damaged = tmp_path / "damaged.mfmap"
+    for keep in sorted(set(np.linspace(0, len(data) - 1, 150).astype(int))):
+        damaged.write_bytes(data[:keep])
+        with pytest.raises(MapFileError):
+            ReferenceMap.load(damaged)
+    for position in sorted(set(np.linspace(0, len(data) - 1, 150).astype(int))):
+        flipped = bytearray(data)
+        flipped[position] ^= 0x5A
+        damaged.write_bytes(bytes(flipped))
+        try:
+            loaded = ReferenceMap.load(damaged)
+        except MapFileError:
+            continue
+        # Only alignment padding is outside the checksums: the content must be intact.
+        assert np.array_equal(loaded.occupancy_bits, original.occupancy_bits)
+        assert np.array_equal(loaded.poses, original.poses)
+        assert np.array_equal(loaded.cloud(2), original.cloud(2))
+
+
+def test_empty_and_single_reference_maps(tmp_path, rng, world):
+    config = preset("kitti")
+    empty = ReferenceMap(config.descriptor)
+    empty.save(tmp_path / "empty.mfmap")
+    points, _ = scan_world(world, 0.0, 0.0, 0.0, rng)
+    result = Localiser(ReferenceMap.load(tmp_path / "empty.mfmap"), config).localise(1.0, points)
+    assert result.match is None and not result.accepted
+
+    single = make_map(rng, n=1)
+    single.params = config.descriptor
+    single.save(tmp_path / "one.mfmap")
+    result = Localiser(ReferenceMap.load(tmp_path / "one.mfmap"), config).localise(1.0, points)
+    assert result.match is not None and result.match.reference_index == 0
+
+
+SAVER = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from mf_lpr_ros.config import preset
+    from mf_lpr_ros.live import MapBuilder, PairedScan
+    from mf_lpr_ros.map_store import ReferenceMap
+    from pathlib import Path
+
+    path = Path(sys.argv[1])
+    config = preset("kitti")
+    existing = ReferenceMap.load(path) if path.exists() else None
+    builder = MapBuilder(config, path, reference_map=existing, keep_clouds=True)
+    rng = np.random.default_rng(len(builder.map))
+    stamp = 1000.0 * len(builder.map)
+    while True:
+        stamp += 1.0
+        pose = np.eye(4)
+        pose[0, 3] = stamp * 3.0
+        builder.offer(PairedScan(0, stamp, rng.uniform(-20, 20, (20000, 3)).astype(np.float32),
+                                 pose))
+        print("saved", builder.save(), flush=True)
+""")
+
+
+def test_sigkill_while_saving_50_times_never_loses_an_acknowledged_reference(tmp_path):
+    """The map builder's save path (MapBuilder.save, used by the node) killed at random
+    moments; most of its time goes to writing a growing multi-megabyte file."""
+    path = tmp_path / "killed.mfmap"
+    chooser = random.Random(7)
+    acknowledged = 0
+    for attempt in range(50):
+        process = subprocess.Popen([sys.executable, "-c", SAVER, str(path)],
+                                   stdout=subprocess.PIPE, text=True)
+        first = process.stdout.readline()              # started and saved at least once
+        assert first.startswith("saved"), first
+        time.sleep(chooser.uniform(0.0, 0.15))
+        process.send_signal(signal.SIGKILL)
+        output = first + process.communicate()[0]
+        acknowledged = int(re.findall(r"saved (\d+)", output)[-1])
+        loaded = ReferenceMap.load(path)
+        assert len(loaded) >= acknowledged, f"attempt {attempt}"
+        assert loaded.has_clouds and len(loaded.cloud(len(loaded) - 1)) == 20000
+    assert acknowledged >= 50
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "killed.mfmap"]
+    assert len(leftovers) <= 1                          # at most the temp file of the last kill
+
+
+def _limit_file_size(limit: int):
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG errors instead of a signal
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def test_full_disk_is_reported_and_the_map_stays_in_memory(ros_graph, world, tmp_path):
+    map_path = tmp_path / "full.mfmap"
+    process = subprocess.Popen(
+        [os.path.join(BIN, "map_builder"), "--ros-args", "-p", "preset:=kitti",
+         "-p", f"map_path:={map_path}", "-p", "save_period_s:=0.3", "-p", "keep_clouds:=true"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0"},
+        preexec_fn=_limit_file_size(3_000_000))
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    rng = np.random.default_rng(0)
+    for index in range(40):
+        points, pose = scan_world(world, 3.0 * index - 60, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+        time.sleep(0.08)
+    time.sleep(1.0)
+    process.send_signal(signal.SIGINT)
+    output = process.communicate(timeout=30)[0]
+    assert process.returncode == 0, output
+    assert "could not save the map" in output and "stay in memory" in output
+    saved = [int(n) for n in re.findall(r"saved (\d+) references", output)]
+    done = int(re.search(r"map_builder done: \d+ scans, (\d+) references", output).group(1))
+    assert saved and done == 40 and saved[-1] < done          # kept in memory beyond the disk
+    assert len(ReferenceMap.load(map_path)) == saved[-1]      # the last good save is intact
+
+
+def test_bad_poses_are_refused_and_building_goes_on(ros_graph, world, tmp_path):
+    builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(tmp_path / "m.mfmap"))
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    rng = np.random.default_rng(1)
+    bad = []
+    nan_pose = np.eye(4)
+    nan_pose[0, 3] = np.nan
+    bad.append(odometry_message(seconds_to_stamp(5.0), "map", "velodyne", nan_pose))
+    stretched = odometry_message(seconds_to_stamp(5.5), "map", "velodyne", np.eye(4))
+    stretched.pose.pose.orientation.w = 1.5                   # not a unit quaternion
+    bad.append(stretched)
+    for message in bad:
+        odometry.publish(message)
+    assert ros_graph.wait_for(lambda: builder.counters["poses_rejected"] == 2)
+    for index in range(6):
+        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(12.5), "map", "velodyne", np.eye(4)))
+    jump = np.eye(4)
+    jump[0, 3] = 900.0
+    odometry.publish(odometry_message(seconds_to_stamp(15.5), "map", "velodyne", jump))
+    assert ros_graph.wait_for(lambda: builder.counters["poses_rejected"] == 3
+                              and builder.poses.jumps == 1 and len(builder.builder.map) == 6)
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as handle:
+        return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def test_repeated_searches_of_a_large_map_do_not_grow_memory(rng):
+    config = preset("kitti")
+    reference_map = ReferenceMap(config.descriptor)
+    occupancy = rng.random((2000, 120, 120)) < 0.1
+    for index in range(2000):
+        reference_map.append(occupancy[index], np.eye(4), float(index))
+    del occupancy
+    localiser = Localiser(reference_map, config)
+    query = np.random.default_rng(2).uniform(-20, 20, (30000, 3)).astype(np.float32)
+    for _ in range(3):
+        localiser.localise(0.0, query)
+    before = _rss_mb()
+    for _ in range(12):
+        localiser.localise(0.0, query)
+    assert _rss_mb() - before < 10.0
