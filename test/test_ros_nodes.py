@@ -229,3 +229,26 @@ def test_reliable_qos_receives_from_reliable_publishers_only(ros_graph, syntheti
     reliable.publish(points_to_pointcloud2(queries[0][0], seconds_to_stamp(7000.0), "velodyne"))
     assert ros_graph.wait_for(lambda: len(poses) == 1)
     assert node.counters["scans_received"] == 1
+
+
+def test_stamps_and_frames_that_do_not_fit_are_refused(ros_graph, synthetic_map):
+    path, queries = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
+                           sensor_frame_id="velodyne")
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    publisher = ros_graph.publisher(PointCloud2, "points")
+    ros_graph.wait_for_subscribers(publisher)
+    points = queries[0][0]
+    cases = [(points_to_pointcloud2(points, seconds_to_stamp(100.0), "velodyne"), True),
+             (points_to_pointcloud2(points, seconds_to_stamp(99.0), "velodyne"), False),   # older
+             (points_to_pointcloud2(points, seconds_to_stamp(101.0), "os_lidar"), False),  # frame
+             (points_to_pointcloud2(points, seconds_to_stamp(node.now_seconds() + 3600),
+                                    "velodyne"), False),                                   # future
+             (points_to_pointcloud2(points, seconds_to_stamp(102.0), "velodyne"), True)]
+    for index, (message, valid) in enumerate(cases):
+        publisher.publish(message)
+        answered = sum(v for _, v in cases[:index + 1])
+        assert ros_graph.wait_for(lambda: len(poses) == answered
+                                  and node.counters["scans_received"] == index + 1)
+    ros_graph.wait_for(lambda: False, 0.3)
+    assert node.counters["scans_rejected"] == 3 and len(poses) == 2

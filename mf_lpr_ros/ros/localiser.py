@@ -109,7 +109,9 @@ class LocaliserNode(LidarNode):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "diagnostics", 10)
         self.create_timer(diagnostics_period_s, self._publish_diagnostics)
 
+        # Scan arrival to published pose (accepted matches), and to any result.
         self.latencies_ms: deque[float] = deque(maxlen=10_000)
+        self.result_latencies_ms: deque[float] = deque(maxlen=10_000)
         self.last: LiveMatch | None = None
         self._scan_index = 0
         self._slot: _PendingScan | None = None
@@ -206,6 +208,7 @@ class LocaliserNode(LidarNode):
         result = self.localiser.localise(scan.seconds, scan.points, scan.pose)
         self.last = result
         self.counters["scans_searched"] += 1
+        self.result_latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
         if result.match is None:
             return
         match = result.match
