@@ -31,8 +31,14 @@ def rss_mb() -> float:
         return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0) -> list[dict]:
-    """Run the soak; one dict per sample (t, rss_mb, received, searched, dropped, latency)."""
+def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0,
+         trace: bool = False) -> list[dict]:
+    """Run the soak; one dict per sample (t, rss_mb, received, searched, dropped, latency and,
+    with trace, traced_mb: memory held by Python and numpy objects, free of allocator noise).
+    With trace, a last sample (t = None) is taken once the stream stopped and the node is idle:
+    what is still held then, against the idle start, is what the run retained."""
+    import tracemalloc
+
     from sensor_msgs.msg import PointCloud2
 
     config = preset("kitti")
@@ -62,6 +68,8 @@ def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0
                     time.sleep(max(0.0, started + index / hz - time.monotonic()))
 
             thread = threading.Thread(target=publish, daemon=True)
+            if trace:
+                tracemalloc.start()
             started = time.monotonic()
             thread.start()
             while time.monotonic() - started < seconds:
@@ -72,9 +80,15 @@ def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0
                                 "searched": node.counters["scans_searched"],
                                 "dropped": node.counters["scans_dropped"],
                                 "latency_ms": float(np.median(recent)) if recent else float("nan"),
-                                "latency_max_ms": float(np.max(recent)) if recent else float("nan")})
+                                "latency_max_ms": float(np.max(recent)) if recent else float("nan"),
+                                "traced_mb": tracemalloc.get_traced_memory()[0] / 2**20
+                                if trace else float("nan")})
             stop.set()
             thread.join()
+            if trace:
+                graph.wait_for(node.is_idle, 30)
+                samples.append({"t": None, "traced_mb": tracemalloc.get_traced_memory()[0] / 2**20})
+                tracemalloc.stop()
         finally:
             graph.close()
     return samples

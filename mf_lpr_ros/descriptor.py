@@ -163,8 +163,19 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> tuple[np.ndar
     cols = np.floor(src_x + size / 2).astype(np.int64)
     rows = np.floor(src_y + size / 2).astype(np.int64)
     inside = (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size)
-    flat = np.where(inside, rows * size + cols, 0).reshape(len(angles_deg), -1)
+    flat = np.where(inside, rows * size + cols, 0).astype(np.int32).reshape(len(angles_deg), -1)
     return flat, inside.reshape(len(angles_deg), -1)
+
+
+def _angle_key(angles_deg: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(a) for a in np.atleast_1d(angles_deg))
+
+
+def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> None:
+    """Compute the rotation tables of these angle sets now (they are cached, at most 64 sets):
+    a long-running search then allocates nothing new for rotations."""
+    for angles in angle_sets:
+        _rotation_sources(size, _angle_key(angles))
 
 
 def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:
@@ -173,7 +184,7 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray) -> np.ndarra
     Nearest-neighbour; cells whose source falls outside the window become unoccupied.
     """
     size = occupancy.shape[0]
-    flat, inside = _rotation_sources(size, tuple(float(a) for a in np.atleast_1d(angles_deg)))
+    flat, inside = _rotation_sources(size, _angle_key(angles_deg))
     rotated = occupancy.ravel()[flat] & inside
     return rotated.reshape(-1, size, size)
 

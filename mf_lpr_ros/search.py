@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import SearchParams
-from .descriptor import pool, rotate_occupancy, weighted
+from .descriptor import pool, prepare_rotations, rotate_occupancy, weighted
 from .map_store import ReferenceMap
 from .matched_filter import SpectralBank, correlate_fft2
 from .pose import planar, query_pose_from_alignment, rotate_covariance
@@ -69,6 +69,10 @@ class MatchedFilterIndex:
         step = search.local_rotation_step_deg
         n_side = int(np.floor(half / step + 1e-9))
         self.local_offsets = np.arange(-n_side, n_side + 1) * step
+        # Every rotation table a query can need (the global set and one local set per global
+        # angle), now: memory is then fixed from the first query of a long run.
+        prepare_rotations(self.params.size, [self.global_angles] +
+                          [angle + self.local_offsets for angle in self.global_angles])
         size = self.params.low_size
         self.bank = SpectralBank(size, size, self.low_shift, capacity=max(len(reference_map), 1))
         self.sync()

@@ -209,15 +209,15 @@ def test_a_20_hz_stream_into_a_slow_localiser_stays_flat_and_fresh():
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_soak import soak
 
-    samples = soak(seconds=24.0, references=1500, hz=20.0, sample_every_s=3.0)
+    samples = soak(seconds=24.0, references=1500, hz=20.0, sample_every_s=3.0, trace=True)
+    retained_mb = samples.pop()["traced_mb"]
     last = samples[-1]
     assert last["received"] >= 0.9 * 20 * 24
     assert last["dropped"] > last["searched"]               # the search is the bottleneck...
     assert last["searched"] + last["dropped"] >= last["received"] - 2   # ...and drops are counted
-    # A backlog or a leak per scan would grow ~3.6 MB/s (20 Hz x 180 kB scans); the second half
-    # of the run must be flat (allocator pools settle in the first).
-    settled = [s["rss_mb"] for s in samples[len(samples) // 2:]]
-    assert max(settled) - min(settled) < 15.0
+    # A backlog or a leak per scan would retain ~3.6 MB/s (20 Hz x 180 kB scans); what Python and
+    # numpy objects still hold once idle is measured (RSS swings by ~50 MB with the allocator).
+    assert retained_mb < 10.0
     latencies = [s["latency_max_ms"] for s in samples[1:]]
     assert max(latencies) < 4 * min(s["latency_ms"] for s in samples[1:])   # bounded
 
