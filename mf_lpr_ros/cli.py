@@ -131,20 +131,13 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import rclpy
+    from .ros.replay import replay_with_own_context
 
-    from .ros.replay import replay_bag
-
-    rclpy.init(args=["mf_lpr_replay", *(["--ros-args", *args.ros_args] if args.ros_args else [])])
-    try:
-        report = replay_bag(args.bag, topics=args.topics, rate=args.rate,
-                            wait_for_subscribers=args.wait_for_subscribers,
-                            wait_timeout_s=args.wait_timeout_s, progress=not args.quiet)
-    except KeyboardInterrupt:
+    report = replay_with_own_context(args.bag, args.ros_args, topics=args.topics, rate=args.rate,
+                                     wait_for_subscribers=args.wait_for_subscribers,
+                                     wait_timeout_s=args.wait_timeout_s, progress=not args.quiet)
+    if report is None:
         return 130
-    finally:
-        if rclpy.ok():
-            rclpy.shutdown()
     for topic, count in report.published.items():
         print(f"published {count} messages on {topic}")
     for topic, reason in report.skipped_topics.items():

@@ -115,6 +115,15 @@ def test_sigkill_while_saving_50_times_never_loses_an_acknowledged_reference(tmp
     assert len(leftovers) <= 1                          # at most the temp file of the last kill
 
 
+def _posed_scan_publishers(ros_graph):
+    """Publishers of scans and odometry, each matched by a subscriber."""
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    return clouds, odometry
+
+
 def _limit_file_size(limit: int):
     def apply() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG errors instead of a signal
@@ -130,10 +139,7 @@ def test_full_disk_is_reported_and_the_map_stays_in_memory(ros_graph, world, tmp
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0"},
         preexec_fn=_limit_file_size(3_000_000))
-    clouds = ros_graph.publisher(PointCloud2, "points")
-    odometry = ros_graph.publisher(Odometry, "odom")
-    ros_graph.wait_for_subscribers(clouds)
-    ros_graph.wait_for_subscribers(odometry)
+    clouds, odometry = _posed_scan_publishers(ros_graph)
     rng = np.random.default_rng(0)
     for index in range(40):
         points, pose = scan_world(world, 3.0 * index - 60, 0.0, 0.0, rng)
@@ -154,10 +160,7 @@ def test_full_disk_is_reported_and_the_map_stays_in_memory(ros_graph, world, tmp
 
 def test_bad_poses_are_refused_and_building_goes_on(ros_graph, world, tmp_path):
     builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(tmp_path / "m.mfmap"))
-    clouds = ros_graph.publisher(PointCloud2, "points")
-    odometry = ros_graph.publisher(Odometry, "odom")
-    ros_graph.wait_for_subscribers(clouds)
-    ros_graph.wait_for_subscribers(odometry)
+    clouds, odometry = _posed_scan_publishers(ros_graph)
     rng = np.random.default_rng(1)
     bad = []
     nan_pose = np.eye(4)
@@ -225,10 +228,7 @@ def test_a_20_hz_stream_into_a_slow_localiser_stays_flat_and_fresh():
 def test_an_unwritable_map_path_is_reported_and_the_map_kept(ros_graph, world):
     builder = ros_graph.start(MapBuilderNode, preset="kitti",
                               map_path="/proc/mf_lpr_read_only/map.mfmap")
-    clouds = ros_graph.publisher(PointCloud2, "points")
-    odometry = ros_graph.publisher(Odometry, "odom")
-    ros_graph.wait_for_subscribers(clouds)
-    ros_graph.wait_for_subscribers(odometry)
+    clouds, odometry = _posed_scan_publishers(ros_graph)
     rng = np.random.default_rng(3)
     for index in range(3):
         points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)

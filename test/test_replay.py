@@ -76,3 +76,12 @@ def test_replay_names_missing_topics(ros_graph, ros1_bag):
         replay_bag(ros1_bag[0], topics=["/lidar"], node=ros_graph.node, progress=False)
     with pytest.raises(ValueError, match="rate"):
         replay_bag(ros1_bag[0], rate=0.0, node=ros_graph.node, progress=False)
+
+
+def test_replay_command_line(ros1_bag, capsys):
+    from mf_lpr_ros.cli import main
+
+    assert main(["replay", str(ros1_bag[0]), "--rate", "50", "--quiet", "--topics",
+                 "/velodyne_points", "--ros-args", "-r", "__node:=replayer"]) == 0
+    printed = capsys.readouterr().out
+    assert "published 3 messages on /velodyne_points" in printed and "/odom" not in printed

@@ -108,6 +108,20 @@ def replay_bag(path: str | Path, *, topics: list[str] | None = None, rate: float
     return report
 
 
+def replay_with_own_context(path: str | Path, ros_args: list[str], **options
+                            ) -> ReplayReport | None:
+    """replay_bag with rclpy initialised (with ros_args: remappings...) and shut down around it;
+    None when interrupted (Ctrl-C)."""
+    rclpy.init(args=["mf_lpr_replay", *(["--ros-args", *ros_args] if ros_args else [])])
+    try:
+        return replay_bag(path, **options)
+    except KeyboardInterrupt:
+        return None
+    finally:
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
 def _wait_for_subscribers(publishers: dict, count: int, timeout_s: float, node: Node) -> None:
     if count <= 0:
         return
