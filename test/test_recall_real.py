@@ -4,7 +4,6 @@ Queries are subsampled to keep the suite fast; the closing notes give full-run n
 Thresholds sit a little under what this implementation measured, so a regression fails.
 """
 
-import pytest
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets import open_source

@@ -264,7 +264,7 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
                    topics=[sequence.cloud_topic, sequence.pose_topic])
         graph.wait_for(localiser.is_idle, 30)
         time.sleep(0.3)
-        counters, latency = dict(localiser.counters), np.array(localiser.latencies_ms)
+        counters, latency = localiser.counters.copy(), np.array(localiser.latencies_ms)
         graph.stop(builder)
         references = len(ReferenceMap.load(map_path))
     finally:
