@@ -53,6 +53,20 @@ def select_references(positions: np.ndarray, spacing_m: float,
     return np.asarray(kept, dtype=np.int64)
 
 
+def revisits(stamps: np.ndarray, positions: np.ndarray, spacing_m: float,
+             exclude_recent_s: float, radius_m: float) -> set[int]:
+    """Indices of scans that revisit a place: a reference (one per spacing_m of travel) at
+    least exclude_recent_s older lies within radius_m of them (the loop-closure ground truth)."""
+    references = select_references(positions, spacing_m)
+    found = set()
+    for index, stamp in enumerate(stamps):
+        old = references[stamps[references] <= stamp - exclude_recent_s]
+        if len(old) and np.linalg.norm(positions[old, :2] - positions[index, :2],
+                                       axis=1).min() <= radius_m:
+            found.add(index)
+    return found
+
+
 def _valid_poses(sequence: Sequence) -> np.ndarray:
     if sequence.poses is None:
         raise ValueError(f"{sequence.name}: this source has no poses; a map needs them")

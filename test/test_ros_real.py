@@ -13,7 +13,7 @@ from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.live import MapBuilder, PairedScan
 from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.pipeline import build_map
+from mf_lpr_ros.pipeline import build_map, revisits
 from mf_lpr_ros.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
@@ -69,25 +69,10 @@ def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag,
             closure["query_stamp"]), 3)]), truth[query])
         assert translation < 0.5 and yaw < 2.0, f"closure of scan {query} is {translation:.2f} m off"
         closed.add(query)
-    revisits = _revisits(sequence, CONFIG.spacing_m, radius_m=3.0)
-    assert len(revisits) >= 5
-    assert len(closed & revisits) >= 0.5 * len(revisits)
-
-
-def _revisits(sequence: RosbagSequence, spacing_m: float, radius_m: float) -> set[int]:
-    """Scans with a reference (one per spacing_m of travel) older than EXCLUDE_RECENT_S within
-    radius_m."""
-    from mf_lpr_ros.pipeline import select_references
-
-    positions = sequence.poses[:, :3, 3]
-    references = select_references(positions, spacing_m)
-    found = set()
-    for index, stamp in enumerate(sequence.stamps):
-        old = references[sequence.stamps[references] <= stamp - EXCLUDE_RECENT_S]
-        if len(old) and np.linalg.norm(positions[old, :2] - positions[index, :2], axis=1).min() \
-                <= radius_m:
-            found.add(index)
-    return found
+    revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
+                         EXCLUDE_RECENT_S, radius_m=3.0)
+    assert len(revisited) >= 5
+    assert len(closed & revisited) >= 0.5 * len(revisited)
 
 
 def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_bag, tmp_path):

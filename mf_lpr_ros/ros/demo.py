@@ -18,9 +18,10 @@ import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from std_msgs.msg import Float64MultiArray
 
+from ..config import preset as named_preset
 from ..datasets.rosbag import RosbagSequence
 from ..map_store import ReferenceMap
-from ..pipeline import select_references
+from ..pipeline import revisits
 from ..pose import planar, pose_matrix, wrap_angle
 from ..simulator import WORLDS, write_bag
 from .graph import RosGraph
@@ -279,7 +280,8 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
         translation.append(float(np.hypot(*(by_stamp[stamp][:2] - truth[query][:2]))))
         yaw.append(abs(math.degrees(float(wrap_angle(by_stamp[stamp][2] - truth[query][2])))))
         closed.add(query)
-    revisits = _revisits(sequence, preset, exclude_recent_s, revisit_radius_m)
+    revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], named_preset(preset).spacing_m,
+                         exclude_recent_s, revisit_radius_m)
     translation, yaw = np.array(translation), np.array(yaw)
     correct = int(((translation < 0.5) & (yaw < 2.0)).sum())
     return [
@@ -289,9 +291,9 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
          f"{counters['scans_received']} / {counters['scans_searched']} / "
          f"{counters['scans_dropped']}"),
         (f"revisits (a reference >= {exclude_recent_s:g} s older within {revisit_radius_m:g} m)",
-         str(len(revisits))),
+         str(len(revisited))),
         ("loop closures published", str(len(closures))),
-        ("revisits closed", f"{len(closed & revisits)} of {len(revisits)}"),
+        ("revisits closed", f"{len(closed & revisited)} of {len(revisited)}"),
         ("closures within 0.5 m and 2 deg of the bag's poses", f"{correct} of {len(closures)}"),
         ("translation error median / max (m)",
          f"{np.median(translation):.3f} / {translation.max():.3f}" if len(translation) else "-"),
@@ -300,20 +302,6 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
         ("latency scan -> published closure, median / p95 (ms)",
          f"{np.median(latency):.1f} / {np.percentile(latency, 95):.1f}" if len(latency) else "-"),
     ]
-
-
-def _revisits(sequence: RosbagSequence, preset_name: str, exclude_recent_s: float,
-              radius_m: float) -> set[int]:
-    from ..config import preset
-
-    positions = sequence.poses[:, :2, 3]
-    references = select_references(sequence.poses[:, :3, 3], preset(preset_name).spacing_m)
-    found = set()
-    for index, stamp in enumerate(sequence.stamps):
-        old = references[sequence.stamps[references] <= stamp - exclude_recent_s]
-        if len(old) and np.linalg.norm(positions[old] - positions[index], axis=1).min() <= radius_m:
-            found.add(index)
-    return found
 
 
 def choose_preset(bag: Path) -> str:
