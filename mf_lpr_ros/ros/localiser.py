@@ -112,6 +112,7 @@ class LocaliserNode(LidarNode):
         # Scan arrival to published pose (accepted matches), and to any result.
         self.latencies_ms: deque[float] = deque(maxlen=10_000)
         self.result_latencies_ms: deque[float] = deque(maxlen=10_000)
+        self.searched_stamps: deque[float] = deque(maxlen=100_000)
         self.last: LiveMatch | None = None
         self._scan_index = 0
         self._slot: _PendingScan | None = None
@@ -208,6 +209,7 @@ class LocaliserNode(LidarNode):
         result = self.localiser.localise(scan.seconds, scan.points, scan.pose)
         self.last = result
         self.counters["scans_searched"] += 1
+        self.searched_stamps.append(scan.seconds)
         self.result_latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
         if result.match is None:
             return
