@@ -6,9 +6,21 @@ STAMP := $(VENV)/.setup-done
 DATA ?=
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test bench clean
+TORCH_STAMP := $(VENV)/.torch-done
+
+.PHONY: setup torch demo test bench clean
 
 setup: $(STAMP)
+
+# PyTorch's CPU build, only so that the tests check the torch backend against numpy. A local
+# wheel when pip finds one, else the CPU index; without either the torch tests skip.
+torch: $(TORCH_STAMP)
+
+$(TORCH_STAMP): $(STAMP)
+	$(VPY) -m pip install -q --no-index torch==2.13.0 2>/dev/null \
+	  || $(VPY) -m pip install -q torch --index-url https://download.pytorch.org/whl/cpu \
+	  || echo "setup: PyTorch not installed; the torch backend's tests will be skipped"
+	touch $(TORCH_STAMP)
 
 $(STAMP): setup.py package.xml scripts/setup_env.sh
 	PYTHON=$(PYTHON) bash scripts/setup_env.sh $(VENV)
@@ -17,7 +29,7 @@ $(STAMP): setup.py package.xml scripts/setup_env.sh
 demo: setup
 	$(VENV)/bin/mf-lpr demo $(if $(DATA),--data $(DATA),)
 
-test: setup
+test: setup torch
 	$(VPY) -m pytest -q $(PYTEST_ARGS)
 
 bench: setup

@@ -99,6 +99,19 @@ class SearchParams:
         between the thresholds that maximise F1 on the tuning sets (KITTI 00 BEV: 0.47, BALM
         handheld: 0.35); the kitti and handheld presets use their own.
     chunk_size: references processed per block in the global stage (memory vs. speed).
+    prefilter_top_k: the global stage correlates only the k references that a rotation- and
+        translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/prefilter.py);
+        0 searches every reference exhaustively (exact mode). With 64 (and the expansion
+        below), the match equals the exhaustive search's on every revisit query of KITTI 00
+        BEV (and 00_rot), in ~1/4 of the time at 1500 references and ~1/100 at 20000
+        (benchmarks/bench_search.py).
+    prefilter_expand_m: the prefilter's 16 best references bring along every reference within
+        this distance of them (map positions): the same place seen from a few metres away often
+        scores just below them in the exact search, and the prefilter ranks such neighbours
+        less consistently. 0 disables.
+    backend: where the search's array work runs. "numpy" (CPU); "torch" (PyTorch: the CUDA
+        GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
+        PyTorch is installed and sees a CUDA device, else numpy.
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
@@ -117,6 +130,9 @@ class SearchParams:
     score_normalisation: str = "cosine"
     min_confidence: float = 0.4
     chunk_size: int = 256
+    prefilter_top_k: int = 64
+    prefilter_expand_m: float = 6.0
+    backend: str = "auto"
     verify_fitness: float = 0.0
 
     def __post_init__(self) -> None:
@@ -133,6 +149,12 @@ class SearchParams:
         _require(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
                  self.min_confidence)
         _require(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
+        _require(self.prefilter_top_k >= 0, "prefilter_top_k", ">= 0 (0 = exhaustive)",
+                 self.prefilter_top_k)
+        _require(self.prefilter_expand_m >= 0, "prefilter_expand_m", ">= 0",
+                 self.prefilter_expand_m)
+        _require(self.backend in ("auto", "numpy", "torch"), "backend",
+                 "'auto', 'numpy' or 'torch'", self.backend)
         _require(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",
                  self.verify_fitness)
 

@@ -71,6 +71,22 @@ def pose_matrix(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
     return matrix
 
 
+def euler_pose(translation: np.ndarray, roll_pitch_yaw: np.ndarray) -> np.ndarray:
+    """4x4 transform(s) from translation(s) (..., 3) and roll, pitch, yaw (..., 3) in radians,
+    R = Rz(yaw) Ry(pitch) Rx(roll) (the NCLT and Oxford RobotCar convention)."""
+    translation = np.asarray(translation, dtype=np.float64)
+    roll, pitch, yaw = np.moveaxis(np.asarray(roll_pitch_yaw, dtype=np.float64), -1, 0)
+    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
+                              np.cos(yaw), np.sin(yaw))
+    matrix = np.zeros(translation.shape[:-1] + (4, 4))
+    matrix[..., 0, :3] = np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1)
+    matrix[..., 1, :3] = np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1)
+    matrix[..., 2, :3] = np.stack([-sp, cp * sr, cp * cr], -1)
+    matrix[..., :3, 3] = translation
+    matrix[..., 3, 3] = 1.0
+    return matrix
+
+
 def planar(pose: np.ndarray) -> np.ndarray:
     """(x, y, yaw) of 4x4 pose(s) (..., 4, 4)."""
     pose = np.asarray(pose)

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import functools
+import importlib
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import SearchParams
-from .descriptor import pool, prepare_rotations, rotate_occupancy, weighted
+from .config import ConfigError, SearchParams
+from .descriptor import pooled_weights, prepare_rotations, rotate_occupancy, weighted
 from .map_store import ReferenceMap
 from .matched_filter import SpectralBank, correlate_fft2
+from .prefilter import PolarSpectrumIndex
 from .pose import planar, query_pose_from_alignment, rotate_covariance
 
 # Scale from normalised peak curvature to variance: a peak whose score halves one cell away
@@ -19,6 +23,7 @@ from .pose import planar, query_pose_from_alignment, rotate_covariance
 _CURVATURE_TO_VARIANCE = 0.1
 _MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
 _REPORTED_CANDIDATES = 5
+_EXPANDED_LEADERS = 16
 
 # Least-squares fit of f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2 on the 3x3 grid
 # (x along columns, y along rows, both -1..1).
@@ -74,7 +79,26 @@ class MatchedFilterIndex:
         prepare_rotations(self.params.size, [self.global_angles] +
                           [angle + self.local_offsets for angle in self.global_angles])
         size = self.params.low_size
-        self.bank = SpectralBank(size, size, self.low_shift, capacity=max(len(reference_map), 1))
+        capacity = max(len(reference_map), 1)
+        self.backend = resolve_backend(search.backend)
+        self.prefilter: PolarSpectrumIndex | None = None
+        if self.backend == "torch":
+            from . import torch_backend
+
+            device = torch_backend.default_device()
+            self.bank = torch_backend.TorchSpectralBank(size, size, self.low_shift, capacity,
+                                                        device)
+            if search.prefilter_top_k > 0:
+                self.prefilter = torch_backend.TorchPolarSpectrumIndex(size, capacity, device)
+            self._correlate_local = functools.partial(torch_backend.correlate_fft2,
+                                                      device=device)
+        else:
+            self.bank = SpectralBank(size, size, self.low_shift, capacity=capacity)
+            if search.prefilter_top_k > 0:
+                self.prefilter = PolarSpectrumIndex(size, capacity=capacity)
+            self._correlate_local = correlate_fft2
+        self._query_lock = threading.Lock()
+        self._positions = np.zeros((0, 2))
         self.sync()
 
     def __len__(self) -> int:
@@ -82,7 +106,7 @@ class MatchedFilterIndex:
 
     @property
     def nbytes(self) -> int:
-        return self.bank.nbytes
+        return self.bank.nbytes + (self.prefilter.nbytes if self.prefilter is not None else 0)
 
     def sync(self, block: int = 1024) -> int:
         """Index references added to the map since the last call; returns how many."""
@@ -90,49 +114,83 @@ class MatchedFilterIndex:
         for first in range(start, stop, block):
             last = min(first + block, stop)
             occupancy = self.map.occupancy(slice(first, last))
-            self.bank.append(pool(weighted(occupancy, self.params.unoccupied_weight),
-                                  self.params.pool))
+            low = pooled_weights(occupancy, self.params.unoccupied_weight, self.params.pool)
+            self.bank.append(low)
+            if self.prefilter is not None:
+                self.prefilter.append(low)
+        if stop > start:
+            self._positions = np.concatenate([self._positions, self.map.poses[start:stop, :2, 3]])
         return stop - start
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None) -> MatchResult | None:
         """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
 
-        Returns None when there is no reference to search.
+        Returns None when there is no reference to search. One query at a time per index: the
+        query operator's buffer is shared.
         """
+        with self._query_lock:
+            return self._query(occupancy, n_active)
+
+    def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
         n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
         if n_refs <= 0:
             return None
         started = time.perf_counter()
         w = self.params.unoccupied_weight
-        low_queries = pool(weighted(rotate_occupancy(occupancy, self.global_angles), w),
-                           self.params.pool)
+        low_queries = pooled_weights(rotate_occupancy(occupancy, self.global_angles), w,
+                                     self.params.pool)
         operator = self.bank.prepare_queries(low_queries)
-        scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
+        prepared = time.perf_counter()
+        top_k = self.search.prefilter_top_k
+        volume = None
+        if self.prefilter is not None and n_refs > top_k:
+            # global_angles[0] is 0: the unrotated query.
+            searched = self._expanded(self.prefilter.top(low_queries[0], top_k, n_refs), n_refs)
+            prefilter_done = time.perf_counter()
+            scores, volume = self.bank.best_of_subset(operator, searched, self.search.chunk_size)
+        else:
+            searched = np.arange(n_refs)
+            prefilter_done = time.perf_counter()
+            scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
         if self.search.score_normalisation == "cosine":
-            scores = scores / np.maximum(self.bank.norms[:n_refs], 1e-6)
-        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), n_refs)
-        ranked = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
-        ranked = ranked[np.argsort(-scores[ranked], kind="stable")]
+            scores = scores / np.maximum(self.bank.norms[searched], 1e-6)
+        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
+        order = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
+        order = order[np.argsort(-scores[order], kind="stable")]
+        ranked = searched[order]
         global_done = time.perf_counter()
 
+        finalists = order[: self.search.top_n]
+        located = (self.bank.peaks(volume, finalists) if volume is not None
+                   else self.bank.locate(operator, searched[finalists]))
         best: _LocalPeak | None = None
-        for reference in ranked[: self.search.top_n]:
-            angle_index, _, _, _ = self.bank.locate(operator, int(reference))
-            peak = self._local(occupancy, int(reference), self.global_angles[angle_index])
+        for reference, (angle_index, *_) in zip(searched[finalists], located):
+            peak = self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
             if best is None or peak.score > best.score:
                 best = peak
         assert best is not None
         result = self._result(best, ranked)
         result.timings_ms = {"global": (global_done - started) * 1e3,
+                             "prefilter": (prefilter_done - prepared) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
         return result
+
+    def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
+        """searched, then the references near its leaders that it lacks (prefilter_expand_m)."""
+        radius = self.search.prefilter_expand_m
+        if radius <= 0:
+            return searched
+        leaders = self._positions[searched[:_EXPANDED_LEADERS]]
+        offsets = self._positions[:n_refs, None, :] - leaders[None]
+        near = np.flatnonzero((np.einsum("nlc,nlc->nl", offsets, offsets) <= radius ** 2).any(1))
+        return np.concatenate([searched, np.setdiff1d(near, searched, assume_unique=True)])
 
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         w = self.params.unoccupied_weight
         angles = global_angle + self.local_offsets
         queries = weighted(rotate_occupancy(occupancy, angles), w)
         reference_image = weighted(self.map.occupancy(reference), w)
-        surface = correlate_fft2(queries, reference_image, self.high_shift)
+        surface = self._correlate_local(queries, reference_image, self.high_shift)
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
@@ -181,6 +239,20 @@ class MatchedFilterIndex:
             covariance=rotate_covariance(relative_covariance, reference_pose[2]),
             relative_covariance=relative_covariance,
             candidates=candidates[:_REPORTED_CANDIDATES])
+
+
+def resolve_backend(name: str) -> str:
+    """The backend SearchParams.backend names: "numpy" or "torch" ("auto": torch on CUDA)."""
+    if name == "numpy":
+        return "numpy"
+    try:
+        torch_backend = importlib.import_module(f"{__package__}.torch_backend")
+    except ImportError as error:
+        if name == "torch":
+            raise ConfigError(f"parameter backend is 'torch' but PyTorch cannot be imported "
+                              f"({error})") from error
+        return "numpy"
+    return "torch" if name == "torch" or torch_backend.cuda_available() else "numpy"
 
 
 @dataclass

@@ -110,3 +110,66 @@ def test_real_bev_axes_agree_with_poses(data_dir):
     truth = planar(scans[4529].pose)
     assert np.hypot(*(result.pose[:2] - truth[:2])) < 0.4
     assert abs(np.degrees(wrap_angle(result.pose[2] - truth[2]))) < 1.0
+
+
+def test_nclt_records_ground_truth_and_frames(tmp_path):
+    from mf_lpr_ros.datasets import NcltSequence
+    from mf_lpr_ros.pose import euler_pose, planar
+
+    (tmp_path / "velodyne_sync").mkdir()
+    # Names are microseconds; listed out of order on purpose.
+    utimes = [1_000_300_000, 1_000_100_000, 1_000_200_000]
+    for k, utime in enumerate(utimes):
+        xyz = np.array([[10.0 + k, 2.0, -1.5]])        # z-down frame: 1.5 m above the sensor
+        scaled = np.round((xyz + 100.0) / 0.005).astype("<u2")
+        record = np.zeros(1, dtype=[("xyz", "<u2", 3), ("i", "u1"), ("l", "u1")])
+        record["xyz"] = scaled
+        record.tofile(tmp_path / "velodyne_sync" / f"{utime}.bin")
+    # Body moving north (x) at 10 m/s, heading north; a NaN row is a gap and is skipped.
+    rows = [[1_000_000_000 + 50_000 * i, 0.5 * i, 0.0, 0.0, 0.0, 0.0, 0.0] for i in range(9)]
+    rows.insert(3, [1_000_120_000] + [float("nan")] * 6)
+    np.savetxt(tmp_path / "groundtruth_2012-01-08.csv", rows, delimiter=",")
+    sequence = open_source(tmp_path)
+    assert isinstance(sequence, NcltSequence)
+    np.testing.assert_allclose(sequence.stamps, [1000.1, 1000.2, 1000.3])
+    scans = list(sequence.iter_scans())
+    # Time order, z up, y mirrored with it (a right-handed z-up frame).
+    np.testing.assert_allclose(scans[0].points, [[11.0, -2.0, 1.5]], atol=0.003)
+    assert [s.points[0, 0] for s in scans] == pytest.approx([11.0, 12.0, 10.0], abs=0.003)
+    # Pose of the Velodyne: body interpolated at the stamp, times the extrinsic, made z-up.
+    extrinsic = euler_pose(np.array([0.002, -0.004, -0.957]),
+                           np.radians([0.807, 0.166, -90.703]))
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    body = np.eye(4)
+    body[0, 3] = 1.0                                   # 0.1 s after the first row
+    np.testing.assert_allclose(sequence.poses[0], flip @ body @ extrinsic @ flip, atol=1e-9)
+    assert planar(sequence.poses[0])[2] == pytest.approx(np.radians(90.703), abs=1e-3)
+
+
+def test_nclt_bad_record_size_is_named(tmp_path):
+    (tmp_path / "velodyne_sync").mkdir()
+    (tmp_path / "velodyne_sync" / "100.bin").write_bytes(b"\0" * 12)
+    with pytest.raises(DatasetError, match="multiple of 8 bytes"):
+        list(open_source(tmp_path).iter_scans())
+
+
+def test_mulran_interpolates_ground_truth_at_scan_stamps(tmp_path):
+    from mf_lpr_ros.datasets import MulranSequence
+
+    (tmp_path / "Ouster").mkdir()
+    for stamp_ns in (2_500_000_000, 1_500_000_000):
+        np.array([[1, 2, 3, 7]], dtype="<f4").tofile(tmp_path / "Ouster" / f"{stamp_ns}.bin")
+    rows = []
+    for i in range(4):                                 # 1 s apart, 4 m apart along x
+        pose = np.eye(4)[:3]
+        pose[0, 3] = 4.0 * i
+        rows.append([1_000_000_000 * (i + 1)] + list(pose.ravel()))
+    np.savetxt(tmp_path / "global_pose.csv", rows, delimiter=",")
+    sequence = open_source(tmp_path)
+    assert isinstance(sequence, MulranSequence)
+    np.testing.assert_allclose(sequence.stamps, [1.5, 2.5])
+    # Base at 2 m and 6 m; the Ouster sits 1.7042 m ahead, turned ~180 deg.
+    assert sequence.poses[0, 0, 3] == pytest.approx(2.0 + 1.7042, abs=1e-3)
+    assert sequence.poses[1, 0, 3] == pytest.approx(6.0 + 1.7042, abs=1e-3)
+    assert sequence.poses[0, 0, 0] == pytest.approx(-1.0, abs=1e-3)
+    assert next(sequence.iter_scans([0])).points.tolist() == [[1.0, 2.0, 3.0]]

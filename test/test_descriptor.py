@@ -4,7 +4,7 @@ import pytest
 from mf_lpr_ros.config import DescriptorParams
 from mf_lpr_ros.descriptor import (InvalidCloudError, auto_voxel_size, cap_patches,
                                    describe_density_image, describe_points, height_density, pool,
-                                   rotate_occupancy, weighted)
+                                   pooled_weights, rotate_occupancy, weighted)
 
 PARAMS = DescriptorParams(voxel_size=0.5, density_threshold=1.0)
 
@@ -77,6 +77,13 @@ def test_weights_and_pooling():
     assert low.shape == (2, 2)
     assert low[0, 0] == pytest.approx((1 - 0.45) / 4)
     assert low[1, 1] == pytest.approx(-0.15)
+
+
+@pytest.mark.parametrize("factor", [1, 2, 3])
+def test_pooled_weights_equal_pooling_the_weights(factor):
+    occupancy = np.random.default_rng(factor).random((5, 12, 12)) < 0.3
+    np.testing.assert_allclose(pooled_weights(occupancy, -0.2, factor),
+                               pool(weighted(occupancy, -0.2), factor), atol=1e-6)
 
 
 def test_rotation_is_counter_clockwise_about_the_sensor():

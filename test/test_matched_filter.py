@@ -49,12 +49,22 @@ def test_global_best_and_location_match_brute_force(rng):
     np.testing.assert_allclose(best, brute.reshape(9, -1).max(axis=1), atol=1e-3)
     top = int(np.argmax(best))
     assert top == int(np.argmax(brute.reshape(9, -1).max(axis=1)))
-    a, di, dj, score = bank.locate(operator, top)
-    expected = np.unravel_index(np.argmax(brute[top]), brute[top].shape)
-    assert (a, di + max_shift, dj + max_shift) == tuple(int(v) for v in expected)
-    assert score == pytest.approx(brute[top].max(), abs=1e-3)
+    located = bank.locate(operator, np.array([top, 2]))
+    for row, reference in zip(located, (top, 2)):
+        a, di, dj, score = row
+        expected = np.unravel_index(np.argmax(brute[reference]), brute[reference].shape)
+        assert (a, di + max_shift, dj + max_shift) == tuple(int(v) for v in expected)
+        assert score == pytest.approx(brute[reference].max(), abs=1e-3)
     # Restricting to the first references searches only those.
     assert np.allclose(bank.best_per_reference(operator, stop=3), best[:3])
+    # Any subset, in any order, scores as the full search does.
+    subset = np.array([7, 0, 4, 8])
+    for chunk_size in (3, 4):
+        subset_best, volume = bank.best_of_subset(operator, subset, chunk_size=chunk_size)
+        np.testing.assert_allclose(subset_best, best[subset], atol=1e-5)
+    # One chunk: the volume comes back and locates as a second pass would.
+    np.testing.assert_allclose(bank.peaks(volume, [2, 0]), bank.locate(operator, subset[[2, 0]]),
+                               atol=1e-5)
 
 
 def test_shifted_copy_peaks_at_its_shift(rng):

@@ -31,9 +31,12 @@ def synthetic_map(world):
 @pytest.mark.parametrize("truth,expected_ref", [((1.3, -0.7, 0.5), 0), ((24.1, 1.9, -2.0), 1),
                                                 ((-0.5, 26.2, 3.0), 2), ((-23.7, -11.1, 1.2), 3),
                                                 ((21.45, 18.2, -1.7), 4)])
-def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref):
+@pytest.mark.parametrize("prefilter_top_k", [0, 2])
+def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref, prefilter_top_k):
+    # top_k 2 of 5 references: the polar-spectrum prefilter must keep the right one.
     points, _ = scan_world(world, *truth, np.random.default_rng(1))
-    result = MatchedFilterIndex(synthetic_map, SearchParams()).query(describe_points(points, PARAMS))
+    result = MatchedFilterIndex(synthetic_map, SearchParams(prefilter_top_k=prefilter_top_k)
+                                ).query(describe_points(points, PARAMS))
     assert result.reference_index == expected_ref
     assert np.hypot(*(result.pose[:2] - truth[:2])) < 0.15
     assert yaw_error_deg(result.pose[2], truth[2]) < 0.6
@@ -45,7 +48,7 @@ def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref)
     assert result.candidates[0] == expected_ref
     assert 0.3 < result.confidence <= 1.0
     assert np.all(np.linalg.eigvalsh(result.covariance) > 0)
-    assert set(result.timings_ms) == {"global", "local"}
+    assert set(result.timings_ms) == {"global", "prefilter", "local"}
 
 
 def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):

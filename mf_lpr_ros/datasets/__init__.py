@@ -7,13 +7,16 @@ from pathlib import Path
 from .base import DatasetError, Scan, Sequence
 from .bev_png import BevPngSequence
 from .kitti import KittiSequence
+from .mulran import MulranSequence
+from .nclt import NcltSequence
 from .pcd_folder import PcdFolderSequence
 from .rosbag import RosbagSequence
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 
 __all__ = ["DatasetError", "Scan", "Sequence", "open_source", "KittiSequence",
-           "PcdFolderSequence", "BevPngSequence", "RosbagSequence"]
+           "PcdFolderSequence", "BevPngSequence", "RosbagSequence", "NcltSequence",
+           "MulranSequence"]
 
 
 def open_source(path: str | Path, cloud_topic: str | None = None,
@@ -29,11 +32,17 @@ def open_source(path: str | Path, cloud_topic: str | None = None,
             return RosbagSequence(path, cloud_topic, pose_topic)
         if (path / "velodyne").is_dir():
             return KittiSequence(path)
+        if (path / "velodyne_sync").is_dir():
+            return NcltSequence(path)
+        if (path / "Ouster").is_dir():
+            return MulranSequence(path)
         if (path / "imgs").is_dir():
             return BevPngSequence(path)
         if (path / "poses_tum.txt").exists() or any(path.glob("*.pcd")) or (path / "pcd").is_dir():
             return PcdFolderSequence(path)
     raise DatasetError(
         f"{path}: unknown dataset layout. Expected a KITTI folder (velodyne/*.bin, poses.txt), "
+        "an NCLT session (velodyne_sync/*.bin, groundtruth_*.csv), a MulRan sequence "
+        "(Ouster/*.bin, global_pose.csv), "
         "a PCD folder (*.pcd or pcd/*.pcd with poses_tum.txt), a BEV PNG folder (imgs/*.png, "
         "poses.txt) or a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)")

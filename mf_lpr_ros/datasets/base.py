@@ -91,3 +91,32 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     except ValueError as error:
         raise DatasetError(f"{path}: {error}") from error
     return values[:, 0], poses
+
+
+def poses_at_stamps(pose_stamps: np.ndarray, poses: np.ndarray, scan_stamps: np.ndarray,
+                    max_gap_s: float) -> np.ndarray:
+    """Poses interpolated at the scans' stamps; NaN where the ground truth has a gap (a scan
+    with a NaN pose is neither a reference nor a query)."""
+    from ..pose import interpolate_poses
+
+    order = np.argsort(pose_stamps, kind="stable")
+    interpolated, valid = interpolate_poses(pose_stamps[order], poses[order], scan_stamps,
+                                            max_gap_s)
+    interpolated[~valid] = np.nan
+    return interpolated
+
+
+def numbered_files(folder, pattern: str, divisor: float) -> tuple[list, np.ndarray]:
+    """Files named by an integer time (e.g. microseconds), in time order, and their stamps in
+    seconds (name / divisor). Never the directory listing's order."""
+    from pathlib import Path
+
+    files = list(Path(folder).glob(pattern))
+    if not files:
+        raise DatasetError(f"{folder}: no {pattern} files")
+    try:
+        keys = np.array([int(p.stem) for p in files], dtype=np.int64)
+    except ValueError as error:
+        raise DatasetError(f"{folder}: file names must be integer times ({error})") from error
+    order = np.argsort(keys, kind="stable")
+    return [files[i] for i in order], keys[order] / divisor

@@ -1,0 +1,92 @@
+"""The PyTorch backend gives the numpy backend's results (here on torch's CPU build)."""
+
+import dataclasses
+import sys
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.config import ConfigError, DescriptorParams, SearchParams
+from mf_lpr_ros.descriptor import describe_points
+from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.prefilter import PolarSpectrumIndex
+from mf_lpr_ros.search import MatchedFilterIndex, resolve_backend
+from mf_lpr_ros.synthetic import scan_world
+
+torch_backend = pytest.importorskip("mf_lpr_ros.torch_backend",
+                                    reason="PyTorch is not installed (make test installs it)")
+PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
+
+
+def test_bank_operations_match_numpy():
+    rng = np.random.default_rng(0)
+    references = (rng.random((11, 20, 20)) < 0.3).astype(np.float32) - 0.15
+    queries = (rng.random((3, 20, 20)) < 0.3).astype(np.float32) - 0.15
+    cpu, gpu = SpectralBank(20, 20, 4, capacity=2), torch_backend.TorchSpectralBank(20, 20, 4, 2)
+    for bank in (cpu, gpu):
+        bank.append(references[:5])
+        bank.append(references[5:])
+    cpu_op, gpu_op = cpu.prepare_queries(queries), gpu.prepare_queries(queries)
+    np.testing.assert_allclose(gpu.best_per_reference(gpu_op, chunk_size=4),
+                               cpu.best_per_reference(cpu_op, chunk_size=4), atol=1e-4)
+    subset = np.array([9, 2, 5])
+    (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (cpu.best_of_subset(cpu_op, subset),
+                                                      gpu.best_of_subset(gpu_op, subset))
+    np.testing.assert_allclose(gpu_best, cpu_best, atol=1e-4)
+    np.testing.assert_allclose(gpu.peaks(gpu_volume, [1, 2]), cpu.peaks(cpu_volume, [1, 2]),
+                               atol=1e-4)
+    np.testing.assert_allclose(gpu.locate(gpu_op, subset), cpu.locate(cpu_op, subset), atol=1e-4)
+    np.testing.assert_allclose(gpu.norms, cpu.norms)
+    np.testing.assert_allclose(torch_backend.correlate_fft2(queries, references[3], 4),
+                               correlate_fft2(queries, references[3], 4), atol=1e-4)
+
+
+def test_prefilter_matches_numpy():
+    images = np.random.default_rng(1).random((7, 60, 60)).astype(np.float32)
+    cpu, gpu = PolarSpectrumIndex(60, capacity=2), torch_backend.TorchPolarSpectrumIndex(60, 2)
+    for index in (cpu, gpu):
+        index.append(images[:3])
+        index.append(images[3:])
+    np.testing.assert_allclose(gpu.scores(images[4], stop=6), cpu.scores(images[4], stop=6),
+                               atol=1e-5)
+
+
+def test_search_results_match_numpy(world):
+    rng = np.random.default_rng(0)
+    reference_map = ReferenceMap(PARAMS)
+    for i, (x, y, yaw) in enumerate([(0, 0, 0.0), (25, 0, 1.0), (0, 25, -2.0), (20, 20, 0.3)]):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+                             float(i), i)
+    for top_k in (0, 2):
+        search = SearchParams(prefilter_top_k=top_k, backend="numpy")
+        cpu = MatchedFilterIndex(reference_map, search)
+        gpu = MatchedFilterIndex(reference_map, dataclasses.replace(search, backend="torch"))
+        assert gpu.backend == "torch" and cpu.backend == "numpy"
+        for truth in ((1.3, -0.7, 0.5), (21.45, 18.2, -1.7)):
+            points, _ = scan_world(world, *truth, np.random.default_rng(1))
+            occupancy = describe_points(points, PARAMS)
+            expected, got = cpu.query(occupancy), gpu.query(occupancy)
+            assert got.reference_index == expected.reference_index
+            assert list(got.candidates) == list(expected.candidates)
+            np.testing.assert_allclose(got.pose, expected.pose, atol=1e-4)
+            assert got.confidence == pytest.approx(expected.confidence, abs=1e-5)
+            np.testing.assert_allclose(got.covariance, expected.covariance, rtol=1e-3, atol=1e-9)
+
+
+def test_backend_choice(monkeypatch):
+    monkeypatch.setattr(torch_backend, "cuda_available", lambda: False)
+    assert resolve_backend("auto") == "numpy"
+    assert resolve_backend("torch") == "torch"
+    monkeypatch.setattr(torch_backend, "cuda_available", lambda: True)
+    assert resolve_backend("auto") == "torch"
+    assert resolve_backend("numpy") == "numpy"
+
+
+def test_torch_backend_without_pytorch_names_the_problem(monkeypatch):
+    monkeypatch.delitem(sys.modules, "mf_lpr_ros.torch_backend")
+    monkeypatch.setitem(sys.modules, "torch", None)
+    with pytest.raises(ConfigError, match="backend is 'torch' but PyTorch cannot be imported"):
+        resolve_backend("torch")
+    assert resolve_backend("auto") == "numpy"
