@@ -13,13 +13,16 @@ TORCH_STAMP := $(VENV)/.torch-done
 setup: $(STAMP)
 
 # PyTorch's CPU build, only so that the tests check the torch backend against numpy. A local
-# wheel when pip finds one, else the CPU index; without either the torch tests skip.
+# wheel where this machine image keeps one, else the CPU index; without either the torch tests skip.
 torch: $(TORCH_STAMP)
 
 $(TORCH_STAMP): $(STAMP)
-	$(VPY) -m pip install -q --no-index torch==2.13.0 2>/dev/null \
-	  || $(VPY) -m pip install -q torch --index-url https://download.pytorch.org/whl/cpu \
-	  || echo "setup: PyTorch not installed; the torch backend's tests will be skipped"
+	if ls /opt/wheels/torch-2.13.0*cpu*.whl >/dev/null 2>&1; then \
+	  $(VPY) -m pip install -q torch==2.13.0; \
+	else \
+	  $(VPY) -m pip install -q --retries 0 --timeout 20 torch \
+	    --index-url https://download.pytorch.org/whl/cpu; \
+	fi || echo "setup: PyTorch not installed; the torch backend's tests will be skipped"
 	touch $(TORCH_STAMP)
 
 $(STAMP): setup.py package.xml scripts/setup_env.sh

@@ -114,6 +114,37 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+COMPARED = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m", "rre_mean_deg",
+            "f1_max", "ms_per_query")
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from .pipeline import evaluate, evaluate_scan_context
+
+    config = _config(args)
+    reference = open_source(args.reference, args.cloud_topic, args.pose_topic)
+    query = open_source(args.query, args.cloud_topic, args.pose_topic) if args.query else None
+    protocol = dict(query=query, exclude_recent_frames=args.exclude_recent_frames,
+                    query_every=args.query_every, progress=not args.quiet)
+    results = {"MF-LPR (ours)": evaluate(reference, config, args.tolerance, **protocol),
+               "Scan Context": evaluate_scan_context(reference, config, args.tolerance,
+                                                     **protocol)}
+    first = next(iter(results.values()))
+    print(f"\n{reference.name}: {first['n_queries']} revisit queries of {first['n_evaluated']}, "
+          f"{first['n_references']} references, tolerance {args.tolerance} m, preset "
+          f"{args.preset}\n")
+    print("| method | " + " | ".join(COMPARED) + " |")
+    print("|---" * (len(COMPARED) + 1) + "|")
+    for method, values in results.items():
+        print(f"| {method} | " + " | ".join(f"{values[key]:.3f}" for key in COMPARED) + " |")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"config": config.to_dict(),
+                                               "tolerance_m": args.tolerance,
+                                               "results": results}, indent=2) + "\n")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     reference_map = ReferenceMap.load(args.map)
     poses = reference_map.planar_poses
@@ -188,22 +219,27 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(localise)
     localise.set_defaults(handler=cmd_localise)
 
-    evaluation = commands.add_parser(
-        "evaluate", help="recall, pose errors and timings against ground truth",
-        description="With --query: references from --reference, queries from --query. Without: "
-                    "the single-sequence loop-closure protocol (each scan queries the references "
-                    "more than --exclude-recent-frames frames older).")
-    evaluation.add_argument("--reference", required=True, help=SOURCE_HELP)
-    evaluation.add_argument("--query", help="a second source of queries")
-    evaluation.add_argument("--tolerance", type=float, required=True,
-                            help="metres within which a match counts as correct")
-    evaluation.add_argument("--exclude-recent-frames", type=int, default=0)
-    evaluation.add_argument("--query-every", type=int, default=1, help="use every N-th scan as query")
-    evaluation.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
-    evaluation.add_argument("--max-shift-m", type=float, help="largest searched translation")
-    evaluation.add_argument("--json", help="write the results here")
-    _add_common(evaluation)
-    evaluation.set_defaults(handler=cmd_evaluate)
+    protocol_help = ("With --query: references from --reference, queries from --query. Without: "
+                     "the single-sequence loop-closure protocol (each scan queries the references "
+                     "more than --exclude-recent-frames frames older).")
+    for name, handler, text in (
+            ("evaluate", cmd_evaluate, "recall, pose errors and timings against ground truth"),
+            ("compare", cmd_compare, "MF-LPR and the Scan Context baseline side by side, same "
+                                     "data and protocol")):
+        evaluation = commands.add_parser(name, help=text, description=protocol_help)
+        evaluation.add_argument("--reference", required=True, help=SOURCE_HELP)
+        evaluation.add_argument("--query", help="a second source of queries")
+        evaluation.add_argument("--tolerance", type=float, required=True,
+                                help="metres within which a match counts as correct")
+        evaluation.add_argument("--exclude-recent-frames", type=int, default=0)
+        evaluation.add_argument("--query-every", type=int, default=1,
+                                help="use every N-th scan as query")
+        evaluation.add_argument("--spacing-m", type=float,
+                                help="distance between references (default 2.0)")
+        evaluation.add_argument("--max-shift-m", type=float, help="largest searched translation")
+        evaluation.add_argument("--json", help="write the results here")
+        _add_common(evaluation)
+        evaluation.set_defaults(handler=handler)
 
     replay = commands.add_parser(
         "replay", help="publish a bag's clouds and poses on live ROS 2 topics",

@@ -15,6 +15,7 @@ from .descriptor import describe_density_image, describe_points, stamp_seed_key
 from .map_store import ReferenceMap
 from .pose import level_points, planar, wrap_angle
 from .refine import refine_match
+from .scan_context import ScanContextIndex
 from .search import MatchedFilterIndex, MatchResult
 
 
@@ -145,16 +146,11 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
     sequence recorded frame by frame alongside the reference (e.g. KITTI 00 and 00_rot),
     exclude_recent_frames compares frame indices across the two the same way.
     """
-    valid = _valid_poses(reference)
-    positions = reference.poses[:, :2, 3]
-    ref_indices = select_references(reference.poses[:, :3, 3], config.spacing_m, valid)
+    positions = reference.poses[:, :2, 3] if reference.poses is not None else None
+    ref_indices, query_indices = _protocol(reference, config, query, exclude_recent_frames,
+                                           query_every)
     same_sequence = query is None
     query_seq = reference if same_sequence else query
-    query_valid = _valid_poses(query_seq)
-    query_indices = np.flatnonzero(query_valid)[::query_every]
-    if same_sequence or exclude_recent_frames > 0:
-        # Queries need at least one reference old enough.
-        query_indices = query_indices[query_indices > ref_indices[0] + exclude_recent_frames]
 
     reference_map = ReferenceMap(config.descriptor, metadata={"source": reference.name})
     query_occupancy: dict[int, tuple[np.ndarray, float]] = {}
@@ -177,8 +173,7 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
     ref_positions = positions[ref_indices]
     records = []
     for query_index in tqdm(query_indices, desc="search", disable=not progress, unit="query"):
-        n_active = (int(np.searchsorted(ref_indices, query_index - exclude_recent_frames, "left"))
-                    if same_sequence or exclude_recent_frames > 0 else len(ref_indices))
+        n_active = _n_active(ref_indices, query_index, exclude_recent_frames, same_sequence)
         if n_active == 0:
             continue
         occupancy, descriptor_ms = query_occupancy[int(query_index)]
@@ -187,6 +182,97 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
         distances = np.linalg.norm(ref_positions[:n_active] - truth[:2], axis=1)
         records.append(_score_query(match, truth, distances, tolerance_m, descriptor_ms))
     return summarise(records, n_references=len(ref_indices))
+
+
+def _protocol(reference: Sequence, config: Config, query: Sequence | None,
+              exclude_recent_frames: int, query_every: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reference indices (one per spacing_m) and query indices (every query_every-th valid scan
+    with at least one reference old enough) of evaluate's protocol."""
+    valid = _valid_poses(reference)
+    ref_indices = select_references(reference.poses[:, :3, 3], config.spacing_m, valid)
+    query_indices = np.flatnonzero(_valid_poses(reference if query is None else query))[::query_every]
+    if query is None or exclude_recent_frames > 0:
+        query_indices = query_indices[query_indices > ref_indices[0] + exclude_recent_frames]
+    return ref_indices, query_indices
+
+
+def _n_active(ref_indices: np.ndarray, query_index: int, exclude_recent_frames: int,
+              same_sequence: bool) -> int:
+    if same_sequence or exclude_recent_frames > 0:
+        return int(np.searchsorted(ref_indices, query_index - exclude_recent_frames, "left"))
+    return len(ref_indices)
+
+
+def evaluate_scan_context(reference: Sequence, config: Config, tolerance_m: float, *,
+                          query: Sequence | None = None, exclude_recent_frames: int = 0,
+                          query_every: int = 1, progress: bool = True) -> dict:
+    """evaluate's protocol and metrics for the Scan Context baseline (scan_context.py).
+
+    Its pose is the matched reference's position with the Scan Context yaw, so "corrected"
+    recall is retrieval recall with the reference's own position error. Its confidence is
+    1 - distance. BEV density images become one point per occupied pixel, the density as height.
+    """
+    ref_indices, query_indices = _protocol(reference, config, query, exclude_recent_frames,
+                                           query_every)
+    query_seq = reference if query is None else query
+    index = ScanContextIndex()
+    contexts: dict[int, tuple[np.ndarray, float]] = {}
+    wanted_refs = set(ref_indices.tolist())
+    wanted_queries = set(query_indices.tolist())
+    reference_jobs = sorted(wanted_refs | (wanted_queries if query is None else set()))
+    for scan in tqdm(reference.iter_scans(reference_jobs), total=len(reference_jobs),
+                     desc="scan context", disable=not progress, unit="scan"):
+        started = time.perf_counter()
+        context = index.describe(_points_for_scan_context(scan, config.descriptor))
+        elapsed_ms = (time.perf_counter() - started) * 1e3
+        if scan.index in wanted_refs:
+            index.append_context(context)
+        if query is None and scan.index in wanted_queries:
+            contexts[scan.index] = (context, elapsed_ms)
+    if query is not None:
+        for scan in tqdm(query.iter_scans(query_indices), total=len(query_indices),
+                         desc="scan context queries", disable=not progress, unit="scan"):
+            started = time.perf_counter()
+            context = index.describe(_points_for_scan_context(scan, config.descriptor))
+            contexts[scan.index] = (context, (time.perf_counter() - started) * 1e3)
+    reference_poses = planar(reference.poses[ref_indices])
+    records = []
+    for query_index in query_indices:
+        n_active = _n_active(ref_indices, query_index, exclude_recent_frames, query is None)
+        if n_active == 0:
+            continue
+        context, descriptor_ms = contexts[int(query_index)]
+        started = time.perf_counter()
+        found, yaw, distance, candidates = index.query_context(context, n_active)
+        search_ms = (time.perf_counter() - started) * 1e3
+        truth = planar(query_seq.poses[query_index])
+        distances = np.linalg.norm(reference_poses[:n_active, :2] - truth[:2], axis=1)
+        pose = reference_poses[found] + np.array([0.0, 0.0, yaw])
+        translation_error = float(distances[found])
+        records.append({
+            "positive": bool(distances.min() <= tolerance_m),
+            "retrieved_correct": translation_error <= tolerance_m,
+            "corrected_correct": translation_error <= tolerance_m,
+            "top5_correct": bool((distances[candidates[:5]] <= tolerance_m).any()),
+            "rte_m": translation_error,
+            "rre_deg": float(abs(np.degrees(wrap_angle(pose[2] - truth[2])))),
+            "confidence": 1.0 - distance,
+            "ms_descriptor": descriptor_ms,
+            "ms_global": search_ms,
+            "ms_local": 0.0,
+        })
+    return summarise(records, n_references=len(ref_indices))
+
+
+def _points_for_scan_context(scan: Scan, params: DescriptorParams) -> np.ndarray:
+    if scan.points is not None:
+        return prepared_points(scan, params)
+    density = np.asarray(scan.density, dtype=np.float64)
+    rows, cols = np.nonzero(density > 0)
+    pixel = scan.density_pixel_m
+    return np.stack([(cols - density.shape[1] // 2 + 0.5) * pixel,
+                     (rows - density.shape[0] // 2 + 0.5) * pixel,
+                     density[rows, cols] * pixel], axis=1)
 
 
 def _timed_query_descriptor(scan: Scan, params: DescriptorParams) -> tuple[np.ndarray, float]:

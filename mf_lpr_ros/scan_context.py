@@ -60,7 +60,9 @@ class ScanContextIndex:
         return context.reshape(p.n_rings, p.n_sectors).astype(np.float32)
 
     def append(self, points: np.ndarray) -> None:
-        context = self.describe(points)
+        self.append_context(self.describe(points))
+
+    def append_context(self, context: np.ndarray) -> None:
         self._contexts = np.concatenate([self._contexts, context[None]])
         self._ring_keys = np.concatenate([self._ring_keys, _ring_key(context)[None]])
 
@@ -68,10 +70,14 @@ class ScanContextIndex:
               ) -> tuple[int, float, float, np.ndarray]:
         """(reference index, yaw of the query in the reference's frame (rad), distance in
         [0, 1], candidates best first) over references [0, n_active)."""
+        return self.query_context(self.describe(points), n_active)
+
+    def query_context(self, context: np.ndarray, n_active: int | None = None
+                      ) -> tuple[int, float, float, np.ndarray]:
+        """query, for a context already described."""
         n_refs = len(self) if n_active is None else min(n_active, len(self))
         if n_refs == 0:
             raise ValueError("Scan Context: no reference to search")
-        context = self.describe(points)
         key_distance = np.linalg.norm(self._ring_keys[:n_refs] - _ring_key(context), axis=1)
         n_candidates = min(self.params.n_candidates, n_refs)
         candidates = np.argpartition(key_distance, n_candidates - 1)[:n_candidates]
