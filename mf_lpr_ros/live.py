@@ -17,7 +17,7 @@ import numpy as np
 from .config import Config, SearchParams
 from .descriptor import InvalidCloudError, describe_points, stamp_seed_key
 from .map_store import ReferenceMap
-from .pose import interpolate_poses, level_points, planar
+from .pose import interpolate_poses, level_points
 from .refine import refine_match
 from .search import MatchedFilterIndex, MatchResult
 

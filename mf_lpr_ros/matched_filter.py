@@ -33,7 +33,7 @@ class SpectralBank:
         self.height, self.width, self.max_shift = height, width, max_shift
         self.fft_length = width + max_shift
         self.n_freqs = self.fft_length // 2 + 1
-        self._bank = np.zeros((self.n_freqs, 2 * height, max(capacity, 1)), dtype=np.float32)
+        self._bank = self._new_bank(max(capacity, 1))
         self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
         self._count = 0
         self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
@@ -65,12 +65,15 @@ class SpectralBank:
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
 
+    def _new_bank(self, capacity: int) -> np.ndarray:
+        return np.zeros((self.n_freqs, 2 * self.height, capacity), dtype=np.float32)
+
     def _reserve(self, needed: int) -> None:
         capacity = self._bank.shape[2]
         if needed <= capacity:
             return
         new_capacity = max(needed, 2 * capacity)
-        bank = np.zeros((self.n_freqs, 2 * self.height, new_capacity), dtype=np.float32)
+        bank = self._new_bank(new_capacity)
         bank[:, :, : self._count] = self._bank[:, :, : self._count]
         norms = np.zeros(new_capacity, dtype=np.float32)
         norms[: self._count] = self._norms[: self._count]

@@ -29,12 +29,9 @@ class TorchSpectralBank(SpectralBank):
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
                  device: torch.device | None = None) -> None:
-        super().__init__(height, width, max_shift, capacity=1)
         self.device = device or default_device()
-        self._bank = torch.zeros((self.n_freqs, 2 * height, max(capacity, 1)),
-                                 dtype=torch.float32, device=self.device)
+        super().__init__(height, width, max_shift, capacity=capacity)
         self._inverse = torch.from_numpy(self._inverse).to(self.device)
-        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
 
     @property
     def nbytes(self) -> int:
@@ -53,17 +50,9 @@ class TorchSpectralBank(SpectralBank):
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
 
-    def _reserve(self, needed: int) -> None:
-        capacity = self._bank.shape[2]
-        if needed <= capacity:
-            return
-        new_capacity = max(needed, 2 * capacity)
-        bank = torch.zeros((self.n_freqs, 2 * self.height, new_capacity), dtype=torch.float32,
+    def _new_bank(self, capacity: int) -> torch.Tensor:
+        return torch.zeros((self.n_freqs, 2 * self.height, capacity), dtype=torch.float32,
                            device=self.device)
-        bank[:, :, : self._count] = self._bank[:, :, : self._count]
-        norms = np.zeros(new_capacity, dtype=np.float32)
-        norms[: self._count] = self._norms[: self._count]
-        self._bank, self._norms = bank, norms
 
     def prepare_queries(self, queries: np.ndarray) -> torch.Tensor:
         height, shift = self.height, self.max_shift

@@ -120,3 +120,11 @@ def numbered_files(folder, pattern: str, divisor: float) -> tuple[list, np.ndarr
         raise DatasetError(f"{folder}: file names must be integer times ({error})") from error
     order = np.argsort(keys, kind="stable")
     return [files[i] for i in order], keys[order] / divisor
+
+
+def read_xyzi_bin(path) -> np.ndarray:
+    """x, y, z (N, 3) of a float32 x y z intensity .bin scan (KITTI, MulRan, BALM)."""
+    raw = np.fromfile(path, dtype="<f4")
+    if raw.size % 4:
+        raise DatasetError(f"{path}: size is not a multiple of 16 bytes (x y z intensity)")
+    return raw.reshape(-1, 4)[:, :3]

@@ -7,7 +7,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .base import DatasetError, Scan, Sequence, read_kitti_poses
+from .base import DatasetError, Scan, Sequence, read_kitti_poses, read_xyzi_bin
 
 
 class KittiSequence(Sequence):
@@ -33,12 +33,8 @@ class KittiSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            path = self._files[index]
-            raw = np.fromfile(path, dtype="<f4")
-            if raw.size % 4:
-                raise DatasetError(f"{path}: size is not a multiple of 16 bytes (x y z intensity)")
             yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
-                       points=raw.reshape(-1, 4)[:, :3])
+                       points=read_xyzi_bin(self._files[index]))
 
 
 def _frame_number(path: Path) -> float:

@@ -13,7 +13,7 @@ from typing import Iterator
 import numpy as np
 
 from ..pose import euler_pose
-from .base import DatasetError, Scan, Sequence, numbered_files, poses_at_stamps
+from .base import DatasetError, Scan, Sequence, numbered_files, poses_at_stamps, read_xyzi_bin
 
 # base_T_ouster from the MulRan calibration (x, y, z m; roll, pitch, yaw deg).
 BASE_T_OUSTER = (1.7042, -0.021, 1.8047, 0.0001, 0.0003, 179.6654)
@@ -45,9 +45,5 @@ class MulranSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            path = self._files[index]
-            raw = np.fromfile(path, dtype="<f4")
-            if raw.size % 4:
-                raise DatasetError(f"{path}: size is not a multiple of 16 bytes (x y z intensity)")
             yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
-                       points=raw.reshape(-1, 4)[:, :3])
+                       points=read_xyzi_bin(self._files[index]))
