@@ -21,7 +21,8 @@ from .descriptor import InvalidCloudError
 from .map_store import MapFileError, ReferenceMap
 
 SOURCE_HELP = ("a KITTI folder (velodyne/*.bin + poses.txt), a PCD folder (+ poses_tum.txt), "
-               "a BEV PNG folder (imgs/ + poses.txt) or a ROS 1/2 bag")
+               "an NCLT session, a MulRan sequence, a BEV PNG folder (imgs/ + poses.txt) or a "
+               "ROS 1/2 bag")
 
 
 def _config(args: argparse.Namespace) -> Config:

@@ -104,3 +104,21 @@ def test_icp_refinement_needs_clouds_and_tightens_poses(traversals, tmp_path, ca
         errors[name] = np.array([float(r["translation_error_m"]) for r in csv.DictReader(out.open())])
     assert np.median(errors["icp"]) < 0.05
     assert np.median(errors["icp"]) <= np.median(errors["mf"])
+
+
+def test_compare_runs_both_methods_on_one_protocol(traversals, tmp_path, capsys):
+    out = tmp_path / "compare.json"
+    assert main(["compare", "--reference", str(traversals / "first"), "--query",
+                 str(traversals / "second"), "--tolerance", "3", "--preset", "kitti", "--json",
+                 str(out), "--quiet"]) == 0
+    results = json.loads(out.read_text())["results"]
+    ours, baseline = results["MF-LPR (ours)"], results["Scan Context"]
+    assert ours["n_queries"] == baseline["n_queries"] == 20
+    assert ours["n_references"] == baseline["n_references"]
+    # Day 2 drives the route backwards 1 m aside: Scan Context finds most places, and
+    # its yaw comes from the column shift (within a 6 degree sector).
+    assert baseline["recall_at_1"] >= 0.5           # a random pick among ~30 refs: ~0.1
+    assert baseline["rre_mean_deg"] < 6.0
+    assert ours["recall_at_1_corrected"] >= baseline["recall_at_1_corrected"]
+    table = capsys.readouterr().out
+    assert "| MF-LPR (ours) |" in table and "| Scan Context |" in table
