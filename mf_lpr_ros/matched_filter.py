@@ -89,11 +89,8 @@ class SpectralBank:
         """
         queries = np.asarray(queries, dtype=np.float32)
         n_queries, height, shift = queries.shape[0], self.height, self.max_shift
-        n_shifts = 2 * shift + 1
         spectra = sp_fft.rfft(queries, n=self.fft_length, axis=2).transpose(2, 0, 1)
-        shape = (self.n_freqs, 2, n_queries, n_shifts, 2 * height)
-        if self._operator.size != np.prod(shape):
-            self._operator = np.empty(shape, dtype=np.float32)
+        shape = self.reserve_operator(n_queries)
         operator = self._operator.reshape(shape)
         padded = np.zeros((2, self.n_freqs, n_queries, height + 2 * shift), dtype=np.float32)
         padded[0, :, :, shift: shift + height] = spectra.real
@@ -106,6 +103,14 @@ class SpectralBank:
         np.negative(imag, out=operator[:, 1, :, :, :height])
         operator[:, 1, :, :, height:] = real
         return operator.reshape(self.n_freqs, -1, 2 * height)
+
+    def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
+        """Allocate the operator buffer for batches of n_queries now (a long run's memory is
+        then fixed before its first query); returns the operator's 5-D shape."""
+        shape = (self.n_freqs, 2, n_queries, 2 * self.max_shift + 1, 2 * self.height)
+        if self._operator.size != np.prod(shape):
+            self._operator = np.empty(shape, dtype=np.float32)
+        return shape
 
     def correlate_block(self, operator: np.ndarray, start: int, stop: int) -> np.ndarray:
         """Scores of the prepared queries against references [start, stop).

@@ -97,6 +97,7 @@ class MatchedFilterIndex:
             if search.prefilter_top_k > 0:
                 self.prefilter = PolarSpectrumIndex(size, capacity=capacity)
             self._correlate_local = correlate_fft2
+        self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
         self._positions = np.zeros((0, 2))
         self.sync()

@@ -54,6 +54,10 @@ class TorchSpectralBank(SpectralBank):
         return torch.zeros((self.n_freqs, 2 * self.height, capacity), dtype=torch.float32,
                            device=self.device)
 
+    def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
+        """The operator lives on the device, built per query: no host buffer."""
+        return (self.n_freqs, 2, n_queries, 2 * self.max_shift + 1, 2 * self.height)
+
     def prepare_queries(self, queries: np.ndarray) -> torch.Tensor:
         height, shift = self.height, self.max_shift
         images = torch.from_numpy(np.asarray(queries, dtype=np.float32)).to(self.device)
