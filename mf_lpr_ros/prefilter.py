@@ -46,7 +46,7 @@ class PolarSpectrumIndex:
         # Real inverse DFT as two matrices: circular correlation over every angle shift.
         self._inverse_real = (weight[:, None] * np.cos(phase) / n_angles).astype(np.float32)
         self._inverse_imag = (-weight[:, None] * np.sin(phase) / n_angles).astype(np.float32)
-        self._bank = np.zeros((self.n_harmonics, max(capacity, 1), n_radii), dtype=np.complex64)
+        self._bank = self._new_bank(max(capacity, 1))
         self._count = 0
 
     def __len__(self) -> int:
@@ -73,13 +73,19 @@ class PolarSpectrumIndex:
     def append(self, images: np.ndarray) -> None:
         """Add references (n, S, S): the low-resolution weighted descriptors."""
         spectra = self.features(images)
-        stop = self._count + len(spectra)
+        self._store(spectra.transpose(1, 0, 2))
+
+    def _new_bank(self, capacity: int) -> np.ndarray:
+        return np.zeros((self.n_harmonics, capacity, self.n_radii), dtype=np.complex64)
+
+    def _store(self, spectra) -> None:
+        """Append (H, n, R) spectra, growing the bank by doubling."""
+        stop = self._count + spectra.shape[1]
         if stop > self._bank.shape[1]:
-            grown = np.zeros((self.n_harmonics, max(stop, 2 * self._bank.shape[1]),
-                              self.n_radii), dtype=np.complex64)
+            grown = self._new_bank(max(stop, 2 * self._bank.shape[1]))
             grown[:, : self._count] = self._bank[:, : self._count]
             self._bank = grown
-        self._bank[:, self._count: stop] = spectra.transpose(1, 0, 2)
+        self._bank[:, self._count: stop] = spectra
         self._count = stop
 
     def scores(self, image: np.ndarray, stop: int | None = None) -> np.ndarray:

@@ -99,7 +99,6 @@ class MatchedFilterIndex:
             self._correlate_local = correlate_fft2
         self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
-        self._positions = np.zeros((0, 2))
         self.sync()
 
     def __len__(self) -> int:
@@ -119,8 +118,6 @@ class MatchedFilterIndex:
             self.bank.append(low)
             if self.prefilter is not None:
                 self.prefilter.append(low)
-        if stop > start:
-            self._positions = np.concatenate([self._positions, self.map.poses[start:stop, :2, 3]])
         return stop - start
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None) -> MatchResult | None:
@@ -181,8 +178,9 @@ class MatchedFilterIndex:
         radius = self.search.prefilter_expand_m
         if radius <= 0:
             return searched
-        leaders = self._positions[searched[:_EXPANDED_LEADERS]]
-        offsets = self._positions[:n_refs, None, :] - leaders[None]
+        positions = self.map.poses[:n_refs, :2, 3]
+        leaders = positions[searched[:_EXPANDED_LEADERS]]
+        offsets = positions[:, None, :] - leaders[None]
         near = np.flatnonzero((np.einsum("nlc,nlc->nl", offsets, offsets) <= radius ** 2).any(1))
         return np.concatenate([searched, np.setdiff1d(near, searched, assume_unique=True)])
 

@@ -114,10 +114,8 @@ class TorchPolarSpectrumIndex(PolarSpectrumIndex):
 
     def __init__(self, image_size: int, capacity: int = 64,
                  device: torch.device | None = None) -> None:
-        super().__init__(image_size, capacity=1)
         self.device = device or default_device()
-        self._bank = torch.zeros((self.n_harmonics, max(capacity, 1), self.n_radii),
-                                 dtype=torch.complex64, device=self.device)
+        super().__init__(image_size, capacity=capacity)
         self._inverse_real = torch.from_numpy(self._inverse_real).to(self.device)
         self._inverse_imag = torch.from_numpy(self._inverse_imag).to(self.device)
 
@@ -126,16 +124,12 @@ class TorchPolarSpectrumIndex(PolarSpectrumIndex):
         return self._bank.numel() * self._bank.element_size()
 
     def append(self, images: np.ndarray) -> None:
-        spectra = torch.from_numpy(np.ascontiguousarray(
-            self.features(images).transpose(1, 0, 2))).to(self.device)
-        stop = self._count + spectra.shape[1]
-        if stop > self._bank.shape[1]:
-            grown = torch.zeros((self.n_harmonics, max(stop, 2 * self._bank.shape[1]),
-                                 self.n_radii), dtype=torch.complex64, device=self.device)
-            grown[:, : self._count] = self._bank[:, : self._count]
-            self._bank = grown
-        self._bank[:, self._count: stop] = spectra
-        self._count = stop
+        self._store(torch.from_numpy(np.ascontiguousarray(
+            self.features(images).transpose(1, 0, 2))).to(self.device))
+
+    def _new_bank(self, capacity: int) -> torch.Tensor:
+        return torch.zeros((self.n_harmonics, capacity, self.n_radii), dtype=torch.complex64,
+                           device=self.device)
 
     def scores(self, image: np.ndarray, stop: int | None = None) -> np.ndarray:
         stop = self._count if stop is None else min(stop, self._count)
