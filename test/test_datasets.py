@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.datasets import (BevPngSequence, DatasetError, KittiSequence, PcdFolderSequence,
+from mf_lpr_ros.datasets import (BevPngSequence, DatasetError, KittiSequence, PointFolderSequence,
                                  RosbagSequence, open_source)
 from mf_lpr_ros.datasets.pcd import read_pcd
 from mf_lpr_ros.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
@@ -72,8 +72,8 @@ def test_pose_interpolation_and_gaps():
 
 @pytest.mark.parametrize("name,kind,count", [("balm_realworld", KittiSequence, 177),
                                              ("balm_realworld_bag", RosbagSequence, 177),
-                                             ("hku_mb_livox", PcdFolderSequence, 457),
-                                             ("kitti07_keyframes", PcdFolderSequence, 5),
+                                             ("hku_mb_livox", PointFolderSequence, 457),
+                                             ("kitti07_keyframes", PointFolderSequence, 5),
                                              ("kitti_bev/00", BevPngSequence, 4541)])
 def test_real_layouts_are_recognised(data_dir, name, kind, count):
     sequence = open_source(data_dir / name)
@@ -173,3 +173,168 @@ def test_mulran_interpolates_ground_truth_at_scan_stamps(tmp_path):
     assert sequence.poses[1, 0, 3] == pytest.approx(6.0 + 1.7042, abs=1e-3)
     assert sequence.poses[0, 0, 0] == pytest.approx(-1.0, abs=1e-3)
     assert next(sequence.iter_scans([0])).points.tolist() == [[1.0, 2.0, 3.0]]
+
+
+def _raw_robotcar_png(path, ranges_m, azimuth_deg):
+    """A raw RobotCar Velodyne scan: 32 intensity rows, 32 little-endian uint16 ranges as byte
+    pairs, the azimuth as a byte pair, 8 rows of packet time."""
+    from PIL import Image
+
+    n = len(azimuth_deg)
+    image = np.zeros((106, n), dtype=np.uint8)
+    ranges = np.round(np.asarray(ranges_m) / 0.002).astype("<u2")          # (32, n)
+    image[32:96:2], image[33:96:2] = ranges & 0xFF, ranges >> 8
+    azimuth = np.round(np.asarray(azimuth_deg) * 100).astype("<u2")
+    image[96], image[97] = azimuth & 0xFF, azimuth >> 8
+    Image.fromarray(image).save(path)
+
+
+def _write_ins(path, rows):
+    header = ("timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,"
+              "velocity_north,velocity_east,velocity_down,roll,pitch,yaw")
+    lines = [header] + [f"{t},INS_SOLUTION_GOOD,51.7,-1.2,100,{n},{e},{d},30U,0,0,0,0,0,{yaw}"
+                        for t, n, e, d, yaw in rows]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_oxford_raw_png_decodes_hdl32e_geometry(tmp_path):
+    from mf_lpr_ros.datasets import OxfordRadarSequence
+
+    folder = tmp_path / "2019-01-10-11-46-21" / "velodyne_left"
+    folder.mkdir(parents=True)
+    ranges = np.zeros((32, 2))
+    ranges[8, 0] = 10.0      # the level beam, azimuth 90 deg: straight ahead in the SDK frame
+    ranges[0, 1] = 20.0      # the upper-most beam (-0.1862 rad in the z-down frame)
+    ranges[31, 0] = 0.5      # under the 1 m minimum: dropped
+    _raw_robotcar_png(folder / "1547120000000000.png", ranges, [90.0, 180.0])
+    sequence = open_source(folder.parent)
+    assert isinstance(sequence, OxfordRadarSequence)
+    points = next(sequence.iter_scans()).points
+    assert points.shape == (2, 3)
+    # Beam by beam, as the SDK orders them. z up: the beam origin is 0.0908 m above the sensor
+    # origin and the upward beam rises; azimuth 180 deg is to the right (-y in a z-up frame).
+    elevation = 0.1862
+    np.testing.assert_allclose(points[0], [0.0, -20 * np.cos(elevation),
+                                           20 * np.sin(elevation) + 0.090805], atol=2e-3)
+    np.testing.assert_allclose(points[1], [10.0, 0.0, 0.090805], atol=1e-3)
+
+
+def test_oxford_bin_and_png_agree_and_time_order(tmp_path):
+    folder = tmp_path / "session" / "velodyne_left"
+    folder.mkdir(parents=True)
+    xyz_down = np.array([[5.0, 1.0, 0.5, 7.0], [-3.0, 2.0, -1.0, 7.0]], dtype="<f4").T  # 4 x N
+    xyz_down.tofile(folder / "200.bin")
+    np.zeros((4, 1), dtype="<f4").tofile(folder / "100.bin")
+    sequence = open_source(folder.parent)
+    np.testing.assert_allclose(sequence.stamps, [100e-6, 200e-6])
+    scans = list(sequence.iter_scans())
+    np.testing.assert_allclose(scans[1].points, [[5.0, -1.0, -0.5], [-3.0, -2.0, 1.0]])
+    (folder / "bad.bin").write_bytes(b"\0" * 16)
+    with pytest.raises(DatasetError, match="integer times"):
+        open_source(folder.parent)
+
+
+def test_oxford_ins_ned_becomes_enu(tmp_path):
+    from mf_lpr_ros.datasets import OxfordRadarSequence
+    from mf_lpr_ros.pose import planar
+
+    session = tmp_path / "s"
+    (session / "velodyne_left").mkdir(parents=True)
+    for utime in (1_000_000, 1_500_000):
+        np.zeros((4, 1), dtype="<f4").tofile(session / "velodyne_left" / f"{utime}.bin")
+    # Heading east (NED yaw 90 deg), driving east 2 m/s from northing 5000, easting 600.
+    _write_ins(session / "gps" / "ins.csv",
+               [(t, 5000.0, 600.0 + 2.0 * (t - 1_000_000) / 1e6, -30.0, np.pi / 2)
+                for t in range(900_000, 1_700_000, 100_000)])
+    identity = (0.0,) * 6
+    sequence = OxfordRadarSequence(session, stereo_t_lidar=identity, stereo_t_ins=identity)
+    # ENU: x east, y north, z up; the z-down sensor turned z up keeps x forward (east).
+    np.testing.assert_allclose(planar(sequence.poses[1]), [601.0, 5000.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(sequence.poses[1][:3, 3], [601.0, 5000.0, 30.0], atol=1e-9)
+    np.testing.assert_allclose(sequence.poses[1][:3, :3], np.eye(3), atol=1e-9)
+    # With the SDK's extrinsics the Velodyne faces backwards-ish (yaw -3.1337 from the camera).
+    sdk = OxfordRadarSequence(session)
+    assert abs(planar(sdk.poses[0])[2]) == pytest.approx(3.1337 - 0.005, abs=0.01)
+    (session / "gps" / "ins.csv").write_text("timestamp,northing\n1,2\n")
+    with pytest.raises(DatasetError, match="INS columns"):
+        OxfordRadarSequence(session)
+
+
+def test_wildplaces_clouds_poses_and_query_split(tmp_path):
+    import pickle
+
+    from mf_lpr_ros.datasets import WildPlacesSequence
+    from mf_lpr_ros.datasets.wildplaces import read_query_split
+
+    sequence_dir = tmp_path / "Venman" / "V-03"
+    clouds = sequence_dir / "Clouds_downsampled"
+    clouds.mkdir(parents=True)
+    stamps = ["1623898781.520584106", "1623898780.020584106", "1623898782.999999999"]
+    for k, stamp in enumerate(stamps):
+        np.array([[k, 0, 0, 1]], dtype="<f4").tofile(clouds / f"{stamp}.bin")
+    rows = ["timestamp,x,y,z,qx,qy,qz,qw",
+            f"{stamps[0]},1,2,3,0,0,0.7071067811865476,0.7071067811865476",
+            f"{stamps[1]},0,0,0,0,0,0,1"]          # no pose for the third cloud
+    (sequence_dir / "poses_aligned.csv").write_text("\n".join(rows) + "\n")
+    sequence = open_source(sequence_dir)
+    assert isinstance(sequence, WildPlacesSequence)
+    np.testing.assert_allclose(sequence.stamps, sorted(float(s) for s in stamps))
+    assert [s.points[0, 0] for s in sequence.iter_scans()] == [1.0, 0.0, 2.0]
+    np.testing.assert_allclose(sequence.poses[1][:3, 3], [1, 2, 3])
+    np.testing.assert_allclose(sequence.poses[1][:2, 0], [0, 1], atol=1e-9)  # yaw 90 deg
+    assert np.isnan(sequence.poses[2]).all()
+
+    split = [{0: {"query": f"V-03/Clouds_downsampled/{stamps[0]}.pcd", "northing": np.float64(2),
+                  "easting": np.float64(1), "pose": np.array([1.0, 2.0], dtype=object),
+                  "timestamp": float(stamps[0]), 1: [0, 3]}},
+             {}]
+    with open(tmp_path / "Venman_evaluation_query.pickle", "wb") as handle:
+        pickle.dump(split, handle)
+    queries = read_query_split(tmp_path / "Venman_evaluation_query.pickle")
+    assert len(queries) == 2 and len(queries[1]) == 0
+    np.testing.assert_allclose(queries[0], [float(stamps[0])])
+
+    class Payload:
+        def __reduce__(self):
+            return (print, ("pickled code ran",))
+    with open(tmp_path / "evil.pickle", "wb") as handle:
+        pickle.dump([{0: Payload()}], handle)
+    with pytest.raises(DatasetError, match="refusing to load builtins.print"):
+        read_query_split(tmp_path / "evil.pickle")
+
+
+def test_ply_folder_with_kitti_poses(tmp_path):
+    from mf_lpr_ros.datasets import PointFolderSequence
+    from mf_lpr_ros.datasets.ply import read_ply
+
+    folder = tmp_path / "ply"
+    folder.mkdir()
+    points = np.array([[1, 2, 3], [4, 5, 6]], dtype="<f4")
+    header = ("ply\nformat {}\ncomment written by a test\nelement camera 1\nproperty float a\n"
+              "element vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nelement face 0\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+    little = np.zeros(2, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])
+    little["x"], little["y"], little["z"] = points.T
+    (folder / "000010.ply").write_bytes(header.format("binary_little_endian 1.0").encode()
+                                        + np.float32(9).tobytes() + little.tobytes())
+    (folder / "000002.ply").write_bytes(header.format("binary_big_endian 1.0").encode()
+                                        + np.float32(9).byteswap().tobytes()
+                                        + little.astype(little.dtype.newbyteorder(">")).tobytes())
+    (folder / "000005.ply").write_text(header.format("ascii 1.0") + "9\n1 2 3 0\n4 5 6 0\n")
+    poses = np.tile(np.eye(4)[:3].ravel(), (3, 1))
+    poses[:, 3] = [2, 5, 10]
+    np.savetxt(tmp_path / "poses.txt", poses)
+    sequence = open_source(tmp_path)
+    assert isinstance(sequence, PointFolderSequence)
+    np.testing.assert_allclose(sequence.stamps, [2, 5, 10])
+    for scan in sequence.iter_scans():
+        np.testing.assert_allclose(scan.points, points)
+        assert scan.pose[0, 3] == scan.stamp
+    (folder / "000011.ply").write_bytes(header.format("binary_little_endian 1.0").encode()
+                                        + b"\0" * 8)
+    with pytest.raises(DatasetError, match="truncated PLY"):
+        read_ply(folder / "000011.ply")
+    with pytest.raises(DatasetError, match="4 scans"):
+        open_source(tmp_path)

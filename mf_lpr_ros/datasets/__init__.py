@@ -9,14 +9,16 @@ from .bev_png import BevPngSequence
 from .kitti import KittiSequence
 from .mulran import MulranSequence
 from .nclt import NcltSequence
-from .pcd_folder import PcdFolderSequence
+from .oxford import OxfordRadarSequence
+from .point_folder import PointFolderSequence, point_folder
 from .rosbag import RosbagSequence
+from .wildplaces import CLOUD_FOLDERS, WildPlacesSequence
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 
 __all__ = ["DatasetError", "Scan", "Sequence", "open_source", "KittiSequence",
-           "PcdFolderSequence", "BevPngSequence", "RosbagSequence", "NcltSequence",
-           "MulranSequence"]
+           "PointFolderSequence", "BevPngSequence", "RosbagSequence", "NcltSequence",
+           "MulranSequence", "OxfordRadarSequence", "WildPlacesSequence"]
 
 
 def open_source(path: str | Path, cloud_topic: str | None = None,
@@ -36,13 +38,19 @@ def open_source(path: str | Path, cloud_topic: str | None = None,
             return NcltSequence(path)
         if (path / "Ouster").is_dir():
             return MulranSequence(path)
+        if (path / "velodyne_left").is_dir():
+            return OxfordRadarSequence(path)
+        if any((path / folder).is_dir() for folder in CLOUD_FOLDERS):
+            return WildPlacesSequence(path)
         if (path / "imgs").is_dir():
             return BevPngSequence(path)
-        if (path / "poses_tum.txt").exists() or any(path.glob("*.pcd")) or (path / "pcd").is_dir():
-            return PcdFolderSequence(path)
+        if point_folder(path) is not None:
+            return PointFolderSequence(path)
     raise DatasetError(
         f"{path}: unknown dataset layout. Expected a KITTI folder (velodyne/*.bin, poses.txt), "
         "an NCLT session (velodyne_sync/*.bin, groundtruth_*.csv), a MulRan sequence "
-        "(Ouster/*.bin, global_pose.csv), "
-        "a PCD folder (*.pcd or pcd/*.pcd with poses_tum.txt), a BEV PNG folder (imgs/*.png, "
-        "poses.txt) or a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)")
+        "(Ouster/*.bin, global_pose.csv), an Oxford Radar RobotCar session (velodyne_left/, "
+        "gps/ins.csv), a Wild-Places sequence (Clouds_downsampled/ or Clouds/, "
+        "poses_aligned.csv), a PCD/PLY folder (*.pcd, *.ply, or in pcd/ or ply/, with "
+        "poses_tum.txt or KITTI poses.txt), a BEV PNG folder (imgs/*.png, poses.txt) or a ROS "
+        "bag (.bag, .db3, .mcap or a ROS 2 bag folder)")
