@@ -18,11 +18,14 @@ import numpy as np
 from .config import PRESETS, Config, ConfigError, load_config, preset
 from .datasets import DatasetError, open_source
 from .descriptor import InvalidCloudError
+from .evaluation import METHODS
 from .map_store import MapFileError, ReferenceMap
 
-SOURCE_HELP = ("a KITTI folder (velodyne/*.bin + poses.txt), a PCD folder (+ poses_tum.txt), "
-               "an NCLT session, a MulRan sequence, a BEV PNG folder (imgs/ + poses.txt) or a "
-               "ROS 1/2 bag")
+METHOD_KEYS = sorted(METHODS)
+SOURCE_HELP = ("a KITTI folder (velodyne/*.bin + poses.txt), a PCD/PLY folder (+ poses_tum.txt "
+               "or poses.txt), an NCLT session, an Oxford Radar RobotCar session, a Wild-Places "
+               "sequence, a MulRan sequence, a BEV PNG folder (imgs/ + poses.txt) or a ROS 1/2 "
+               "bag")
 
 
 def _config(args: argparse.Namespace) -> Config:
@@ -93,17 +96,21 @@ def cmd_localise(args: argparse.Namespace) -> int:
     return 0
 
 
+def _protocol_arguments(args: argparse.Namespace) -> dict:
+    return dict(exclude_recent_frames=args.exclude_recent_frames,
+                exclude_recent_s=args.exclude_recent_s, query_every=args.query_every,
+                query_spacing_m=args.query_spacing_m, progress=not args.quiet)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .pipeline import evaluate
+    from .evaluation import evaluate
 
     config = _config(args)
     reference = open_source(args.reference, args.cloud_topic, args.pose_topic)
     query = open_source(args.query, args.cloud_topic, args.pose_topic) if args.query else None
-    results = evaluate(reference, config, args.tolerance, query=query,
-                       exclude_recent_frames=args.exclude_recent_frames,
-                       query_every=args.query_every, progress=not args.quiet)
+    results = evaluate(reference, config, args.tolerance, query=query, method=args.method,
+                       **_protocol_arguments(args))
     results["config"] = config.to_dict()
-    results["tolerance_m"] = args.tolerance
     text = json.dumps(results, indent=2)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -115,34 +122,47 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-COMPARED = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m", "rre_mean_deg",
-            "f1_max", "ms_per_query")
-
-
 def cmd_compare(args: argparse.Namespace) -> int:
-    from .pipeline import evaluate, evaluate_scan_context
+    from .evaluation import evaluate
+    from .suite import format_table
 
     config = _config(args)
     reference = open_source(args.reference, args.cloud_topic, args.pose_topic)
     query = open_source(args.query, args.cloud_topic, args.pose_topic) if args.query else None
-    protocol = dict(query=query, exclude_recent_frames=args.exclude_recent_frames,
-                    query_every=args.query_every, progress=not args.quiet)
-    results = {"MF-LPR (ours)": evaluate(reference, config, args.tolerance, **protocol),
-               "Scan Context": evaluate_scan_context(reference, config, args.tolerance,
-                                                     **protocol)}
+    results = {}
+    for method in args.methods:
+        summary = evaluate(reference, config, args.tolerance, query=query, method=method,
+                           **_protocol_arguments(args))
+        results[METHODS[method].name] = summary
     first = next(iter(results.values()))
     print(f"\n{reference.name}: {first['n_queries']} revisit queries of {first['n_evaluated']}, "
           f"{first['n_references']} references, tolerance {args.tolerance} m, preset "
           f"{args.preset}\n")
-    print("| method | " + " | ".join(COMPARED) + " |")
-    print("|---" * (len(COMPARED) + 1) + "|")
-    for method, values in results.items():
-        print(f"| {method} | " + " | ".join(f"{values[key]:.3f}" for key in COMPARED) + " |")
+    print(format_table([{"pair": reference.name, "method": name, **values}
+                        for name, values in results.items()]))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"config": config.to_dict(),
                                                "tolerance_m": args.tolerance,
                                                "results": results}, indent=2) + "\n")
+    return 0
+
+
+def cmd_suite(args: argparse.Namespace) -> int:
+    from .suite import SUITES, format_table, run_suite
+
+    if args.list or not args.name:
+        for name, suite in SUITES.items():
+            print(f"{name:>18}: {suite.description}")
+        return 0
+    if args.name not in SUITES:
+        raise ValueError(f"unknown suite {args.name!r}; choose one of {sorted(SUITES)}")
+    if not args.root:
+        raise ValueError("suite needs --root, the folder holding the preset's sequences")
+    rows = run_suite(SUITES[args.name], Path(args.root), Path(args.out),
+                     methods=args.methods, progress=not args.quiet)
+    print(format_table(rows))
+    print(f"\nwrote {args.out}/results.csv, results.json, table.md and figures")
     return 0
 
 
@@ -225,22 +245,48 @@ def build_parser() -> argparse.ArgumentParser:
                      "more than --exclude-recent-frames frames older).")
     for name, handler, text in (
             ("evaluate", cmd_evaluate, "recall, pose errors and timings against ground truth"),
-            ("compare", cmd_compare, "MF-LPR and the Scan Context baseline side by side, same "
-                                     "data and protocol")):
+            ("compare", cmd_compare, "MF-LPR and the baselines side by side, same data and "
+                                     "protocol")):
         evaluation = commands.add_parser(name, help=text, description=protocol_help)
         evaluation.add_argument("--reference", required=True, help=SOURCE_HELP)
         evaluation.add_argument("--query", help="a second source of queries")
         evaluation.add_argument("--tolerance", type=float, required=True,
                                 help="metres within which a match counts as correct")
         evaluation.add_argument("--exclude-recent-frames", type=int, default=0)
+        evaluation.add_argument("--exclude-recent-s", type=float, default=0.0,
+                                help="references must be this many seconds older than the query")
         evaluation.add_argument("--query-every", type=int, default=1,
                                 help="use every N-th scan as query")
+        evaluation.add_argument("--query-spacing-m", type=float, default=0.0,
+                                help="one query per this many metres of travel (0: every scan)")
         evaluation.add_argument("--spacing-m", type=float,
                                 help="distance between references (default 2.0)")
         evaluation.add_argument("--max-shift-m", type=float, help="largest searched translation")
         evaluation.add_argument("--json", help="write the results here")
+        if name == "evaluate":
+            evaluation.add_argument("--method", default="mf-lpr", choices=METHOD_KEYS)
+        else:
+            evaluation.add_argument("--methods", nargs="+", default=["mf-lpr", "scan-context"],
+                                    choices=METHOD_KEYS,
+                                    help="methods to compare (default: %(default)s; "
+                                         "map-closures needs the map-closures package)")
         _add_common(evaluation)
         evaluation.set_defaults(handler=handler)
+
+    suite = commands.add_parser(
+        "suite", help="a benchmark preset: every pair, every method, CSV + JSON + figures",
+        description="Runs a named benchmark (the paper's dataset pairs and protocol) over the "
+                    "sequences under --root, with a progress bar. Each finished pair is saved "
+                    "at once, so an interrupted run resumes where it stopped. Writes "
+                    "results.csv, results.json, table.md and figures under --out.")
+    suite.add_argument("name", nargs="?", help="benchmark preset (see --list)")
+    suite.add_argument("--root", help="dataset root holding the preset's sequences")
+    suite.add_argument("--out", default="out/suite", help="output folder (default: %(default)s)")
+    suite.add_argument("--methods", nargs="+", choices=METHOD_KEYS,
+                       help="methods (default: mf-lpr and scan-context)")
+    suite.add_argument("--list", action="store_true", help="list the presets and exit")
+    suite.add_argument("--quiet", action="store_true", help="no progress bars")
+    suite.set_defaults(handler=cmd_suite)
 
     replay = commands.add_parser(
         "replay", help="publish a bag's clouds and poses on live ROS 2 topics",
