@@ -7,8 +7,9 @@ DATA ?=
 PYTEST_ARGS ?=
 
 TORCH_STAMP := $(VENV)/.torch-done
+BASELINES_STAMP := $(VENV)/.baselines-done
 
-.PHONY: setup torch demo test bench clean
+.PHONY: setup torch baselines demo test bench clean
 
 setup: $(STAMP)
 
@@ -25,6 +26,16 @@ $(TORCH_STAMP): $(STAMP)
 	fi || echo "setup: PyTorch not installed; the torch backend's tests will be skipped"
 	touch $(TORCH_STAMP)
 
+# The MapClosures baseline (mf-lpr compare/suite --methods map-closures). Without its
+# dependencies: they would pin an older numpy, and only its pybind core and pydantic are needed.
+baselines: $(BASELINES_STAMP)
+
+$(BASELINES_STAMP): $(STAMP)
+	{ $(VPY) -m pip install -q --retries 0 --timeout 20 --no-deps map-closures \
+	  && $(VPY) -m pip install -q --retries 0 --timeout 20 pydantic; } \
+	  || echo "setup: map-closures not installed; its baseline tests will check the refusal"
+	touch $(BASELINES_STAMP)
+
 $(STAMP): setup.py package.xml scripts/setup_env.sh
 	PYTHON=$(PYTHON) bash scripts/setup_env.sh $(VENV)
 	touch $(STAMP)
@@ -32,7 +43,7 @@ $(STAMP): setup.py package.xml scripts/setup_env.sh
 demo: setup
 	$(VENV)/bin/mf-lpr demo $(if $(DATA),--data $(DATA),)
 
-test: setup torch
+test: setup torch baselines
 	$(VPY) -m pytest -q $(PYTEST_ARGS)
 
 bench: setup

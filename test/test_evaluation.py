@@ -1,0 +1,99 @@
+"""The evaluation protocol's selection and the metrics, on small hand-made sequences/records."""
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.datasets import Sequence
+from mf_lpr_ros.evaluation import Protocol, select, summarise
+
+
+class Line(Sequence):
+    """Scans every step_m metres along x, one per second; optional NaN poses."""
+
+    def __init__(self, n, step_m=1.0, invalid=()):
+        self.name = "line"
+        self.stamps = np.arange(n, dtype=float)
+        self.poses = np.tile(np.eye(4), (n, 1, 1))
+        self.poses[:, 0, 3] = np.arange(n) * step_m
+        self.poses[list(invalid)] = np.nan
+
+
+def test_reference_and_query_spacing_along_the_path():
+    selection = select(Line(31, invalid=[4]), Protocol(3.0, reference_spacing_m=2.0,
+                                                       query_spacing_m=10.0),
+                       spacing_m=99.0, query=Line(31, step_m=0.5))
+    # References every 2 m skipping the invalid scan; queries every 10 m of the query path.
+    assert selection.references.tolist() == [0, 2, 5, 7] + list(range(9, 31, 2))
+    assert selection.queries.tolist() == [0, 20]
+    assert selection.n_active.tolist() == [len(selection.references)] * 2
+
+
+def test_loop_closure_exclusion_by_frames_and_seconds():
+    line = Line(20)
+    frames = select(line, Protocol(3.0, exclude_recent_frames=5), spacing_m=1.0)
+    # A query sees references more than 5 frames older; the first 6 scans have none.
+    assert frames.queries[0] == 6 and frames.n_active[0] == 1
+    assert (frames.n_active == frames.queries - 5).all()
+    seconds = select(line, Protocol(3.0, exclude_recent_s=7.5), spacing_m=1.0)
+    assert seconds.queries[0] == 8 and (seconds.n_active == seconds.queries - 7).all()
+    own = select(line, Protocol(3.0), spacing_m=1.0)
+    assert (own.n_active == own.queries).all()          # never itself
+
+
+def test_query_split_restricts_queries_by_stamp():
+    selection = select(Line(10), Protocol(3.0), spacing_m=1.0, query=Line(10),
+                       query_stamps=np.array([3.00001, 7.0, 42.0]))
+    assert selection.queries.tolist() == [3, 7]
+
+
+def _record(nearest, retrieved, rte, rre, confidence, candidates):
+    return {"nearest_reference_m": nearest, "retrieved_distance_m": retrieved, "rte_m": rte,
+            "rre_deg": rre, "confidence": confidence, "candidate_distances_m": candidates,
+            "ms_descriptor": 1.0, "ms_global": 2.0, "ms_local": 3.0}
+
+
+def test_summary_metrics_follow_their_definitions():
+    records = [
+        _record(1.0, 1.0, 0.5, 1.0, 0.9, [1.0, 9.0]),     # retrieved, corrected, success
+        _record(1.0, 9.0, 2.5, 3.0, 0.8, [9.0, 2.0]),     # wrong retrieval, corrected, top-2 hit
+        _record(1.0, 2.9, 2.5, 1.0, 0.7, [2.9]),          # retrieved, RTE too big for success
+        _record(8.0, 8.0, 8.0, 90.0, 0.6, [8.0]),         # no reference in reach: not counted
+    ]
+    summary = summarise(records, tolerance_m=3.0, n_references=4)
+    assert summary["n_queries"] == 3 and summary["n_evaluated"] == 4
+    assert summary["recall_at_1"] == pytest.approx(2 / 3)
+    assert summary["recall_at_1_corrected"] == pytest.approx(1.0)
+    assert summary["recall_at_n"][:2] == pytest.approx([2 / 3, 1.0])
+    assert summary["recall_at_5"] == pytest.approx(1.0)
+    assert summary["success_rate"] == pytest.approx(1 / 2)
+    assert summary["rte_mean_m"] == pytest.approx(0.5)
+    # Accepting by confidence: TP, FP, TP, FP -> best F1 at 2 TP of 3 with 3 accepted.
+    assert summary["f1_max"] == pytest.approx(2 * (2 / 3) * (2 / 3) / (4 / 3))
+    assert summary["confidence_at_f1_max"] == pytest.approx(0.7)
+    assert summary["pr_curve"]["precision"] == pytest.approx([1.0, 0.5, 2 / 3, 0.5])
+    curve = summary["recall_vs_threshold"]
+    assert curve["threshold_m"][-1] == pytest.approx(6.0)
+    at_1m = int(np.argmin(np.abs(np.array(curve["threshold_m"]) - 1.0)))
+    assert curve["threshold_m"][at_1m] == pytest.approx(1.05)      # 40 steps of 0.15 m
+    assert curve["corrected"][at_1m] == pytest.approx(1 / 3)
+    assert np.all(np.diff(curve["retrieval"]) >= 0)
+    assert summary["ms_per_query"] == pytest.approx(6.0)
+
+
+def test_map_closures_baseline_runs_or_is_refused_by_name(tmp_path):
+    from mf_lpr_ros.config import preset
+    from mf_lpr_ros.evaluation import make_method
+
+    try:
+        import map_closures  # noqa: F401
+    except ImportError:
+        with pytest.raises(ValueError, match="map-closures"):
+            make_method("map-closures", preset("default"))
+        return
+    method = make_method("map-closures", preset("default"))
+    rng = np.random.default_rng(0)
+    walls = np.concatenate([np.stack([np.full(400, x), rng.uniform(-20, 20, 400),
+                                      rng.uniform(0, 3, 400)], 1) for x in (-10, 10)])
+    method.build([walls, walls + [0, 0, 0]], np.tile(np.eye(4), (2, 1, 1)), np.zeros(2))
+    retrieval = method.query(walls, n_active=1)
+    assert retrieval.reference in (-1, 0)       # never a reference beyond n_active
