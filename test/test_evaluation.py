@@ -1,5 +1,7 @@
 """The evaluation protocol's selection and the metrics, on small hand-made sequences/records."""
 
+import importlib.util
+
 import numpy as np
 import pytest
 
@@ -84,16 +86,26 @@ def test_map_closures_baseline_runs_or_is_refused_by_name(tmp_path):
     from mf_lpr_ros.config import preset
     from mf_lpr_ros.evaluation import make_method
 
-    try:
-        import map_closures  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("map_closures") is None:
         with pytest.raises(ValueError, match="map-closures"):
             make_method("map-closures", preset("default"))
         return
+    from types import SimpleNamespace
+
     method = make_method("map-closures", preset("default"))
-    rng = np.random.default_rng(0)
-    walls = np.concatenate([np.stack([np.full(400, x), rng.uniform(-20, 20, 400),
-                                      rng.uniform(0, 3, 400)], 1) for x in (-10, 10)])
-    method.build([walls, walls + [0, 0, 0]], np.tile(np.eye(4), (2, 1, 1)), np.zeros(2))
-    retrieval = method.query(walls, n_active=1)
-    assert retrieval.reference in (-1, 0)       # never a reference beyond n_active
+    cloud = np.random.default_rng(0).uniform(-20, 20, (500, 3))
+    method.build([cloud] * 3, np.tile(np.eye(4), (3, 1, 1)), np.zeros(3))
+    asked = []
+
+    def closures(query_id, points, k):
+        asked.append(query_id)
+        return [SimpleNamespace(source_id=2, target_id=query_id, number_of_inliers=90),
+                SimpleNamespace(source_id=0, target_id=query_id, number_of_inliers=40),
+                SimpleNamespace(source_id=1, target_id=0, number_of_inliers=99)]
+
+    method._closures = SimpleNamespace(get_top_k_closures=closures)
+    # Reference 2 is too recent for this query; the closure between two references is ignored.
+    retrieval = method.query(cloud, n_active=2)
+    assert (retrieval.reference, retrieval.confidence) == (0, 40.0)
+    assert method.query(cloud, n_active=3).reference == 2
+    assert asked == [3, 4]                      # queries get fresh ids after the references
