@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from .config import Config
 from .datasets import Scan, Sequence
+from .datasets.base import nearest_keys
 from .map_store import ReferenceMap
 from .pipeline import describe_scan, prepared_points, select_references
 from .pose import planar, wrap_angle
@@ -114,12 +115,7 @@ def _valid_poses(sequence: Sequence) -> np.ndarray:
 def _stamps_in(stamps: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     if not len(wanted):
         return np.zeros(len(stamps), dtype=bool)
-    wanted = np.sort(wanted)
-    position = np.searchsorted(wanted, stamps).clip(1, len(wanted) - 1) if len(wanted) > 1 \
-        else np.zeros(len(stamps), dtype=np.int64)
-    nearest = np.minimum(np.abs(wanted[position] - stamps),
-                         np.abs(wanted[np.maximum(position - 1, 0)] - stamps))
-    return nearest <= _STAMP_MATCH_S
+    return nearest_keys(np.sort(wanted), stamps)[1] <= _STAMP_MATCH_S
 
 
 class MatchedFilterMethod:

@@ -106,6 +106,15 @@ def poses_at_stamps(pose_stamps: np.ndarray, poses: np.ndarray, scan_stamps: np.
     return interpolated
 
 
+def nearest_keys(sorted_keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each value, the index of the nearest of sorted_keys and the absolute gap to it."""
+    position = np.searchsorted(sorted_keys, values).clip(0, len(sorted_keys) - 1)
+    before = (position - 1).clip(0)
+    nearest = np.where(np.abs(sorted_keys[before] - values) < np.abs(sorted_keys[position] - values),
+                       before, position)
+    return nearest, np.abs(sorted_keys[nearest] - values)
+
+
 def numbered_files(folder, pattern: str, divisor: float) -> tuple[list, np.ndarray]:
     """Files named by an integer time (e.g. microseconds), in time order, and their stamps in
     seconds (name / divisor). Never the directory listing's order."""

@@ -12,7 +12,8 @@ from typing import Iterator
 
 import numpy as np
 
-from .base import DatasetError, Scan, Sequence, read_kitti_poses, read_tum_poses
+from .base import (DatasetError, Scan, Sequence, nearest_keys, read_kitti_poses,
+                   read_tum_poses)
 from .pcd import read_pcd
 from .ply import read_ply
 
@@ -55,11 +56,8 @@ class PointFolderSequence(Sequence):
         pose_keys, poses = read_tum_poses(path)
         order = np.argsort(pose_keys, kind="stable")
         pose_keys, poses = pose_keys[order], poses[order]
-        position = np.searchsorted(pose_keys, keys).clip(0, len(pose_keys) - 1)
-        before = (position - 1).clip(0)
-        nearest = np.where(np.abs(pose_keys[before] - keys) < np.abs(pose_keys[position] - keys),
-                           before, position)
-        unmatched = np.abs(pose_keys[nearest] - keys) > _KEY_TOLERANCE
+        nearest, gap = nearest_keys(pose_keys, keys)
+        unmatched = gap > _KEY_TOLERANCE
         if unmatched.any():
             raise DatasetError(f"{path}: no pose for {int(unmatched.sum())} scan(s), e.g. "
                                f"{self._files[int(np.argmax(unmatched))].name}")

@@ -16,7 +16,7 @@ from typing import Iterator
 import numpy as np
 
 from ..pose import pose_matrix
-from .base import DatasetError, Scan, Sequence, read_xyzi_bin
+from .base import DatasetError, Scan, Sequence, nearest_keys, read_xyzi_bin
 from .pcd import read_pcd
 
 CLOUD_FOLDERS = ("Clouds_downsampled", "Clouds")
@@ -50,11 +50,8 @@ class WildPlacesSequence(Sequence):
         pose_stamps, poses = read_pose_csv(path)
         order = np.argsort(pose_stamps, kind="stable")
         pose_stamps, poses = pose_stamps[order], poses[order]
-        position = np.searchsorted(pose_stamps, self.stamps).clip(0, len(pose_stamps) - 1)
-        before = (position - 1).clip(0)
-        nearest = np.where(np.abs(pose_stamps[before] - self.stamps)
-                           < np.abs(pose_stamps[position] - self.stamps), before, position)
-        matched = np.abs(pose_stamps[nearest] - self.stamps) <= _STAMP_TOLERANCE_S
+        nearest, gap = nearest_keys(pose_stamps, self.stamps)
+        matched = gap <= _STAMP_TOLERANCE_S
         result = np.full((len(self.stamps), 4, 4), np.nan)
         result[matched] = poses[nearest[matched]]
         return result
