@@ -76,7 +76,9 @@ def test_killing_map_builder_leaves_the_last_saved_map_loadable(ros_graph, world
     acknowledged = [int(n) for n in re.findall(r"saved (\d+) references", output)]
     assert acknowledged, output
     reference_map = ReferenceMap.load(map_path)
-    assert len(reference_map) >= acknowledged[-1] >= 5
+    # The kill can land between a save's rename and its log line: the map may hold more than the
+    # last line acknowledges, never less.
+    assert len(reference_map) >= max(acknowledged[-1], 5)
     assert not list(tmp_path.glob("*.tmp*"))
 
 
