@@ -221,8 +221,10 @@ def test_a_20_hz_stream_into_a_slow_localiser_stays_flat_and_fresh():
     # A backlog or a leak per scan would retain ~3.6 MB/s (20 Hz x 180 kB scans); what Python and
     # numpy objects still hold once idle is measured (RSS swings by ~50 MB with the allocator).
     assert retained_mb < 10.0
-    latencies = [s["latency_max_ms"] for s in samples[1:]]
-    assert max(latencies) < 4 * min(s["latency_ms"] for s in samples[1:])   # bounded
+    # Fresh: at no sample does a backlog build up. One scan in search, one pending and one being
+    # counted in are in flight; a backlog would add ~60 scans per 3 s sample. (Latency, a
+    # wall-clock figure, is reported by the benchmark rather than asserted here.)
+    assert all(s["received"] - s["searched"] - s["dropped"] <= 4 for s in samples)
 
 
 def test_an_unwritable_map_path_is_reported_and_the_map_kept(ros_graph, world):
