@@ -19,6 +19,7 @@ from .config import PRESETS, Config, ConfigError, load_config, preset
 from .datasets import DatasetError, open_source
 from .descriptor import InvalidCloudError
 from .evaluation import METHODS
+from .suite import DEFAULT_METHODS
 from .map_store import MapFileError, ReferenceMap
 
 METHOD_KEYS = sorted(METHODS)
@@ -266,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "evaluate":
             evaluation.add_argument("--method", default="mf-lpr", choices=METHOD_KEYS)
         else:
-            evaluation.add_argument("--methods", nargs="+", default=["mf-lpr", "scan-context"],
+            evaluation.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
                                     choices=METHOD_KEYS,
                                     help="methods to compare (default: %(default)s; "
                                          "map-closures needs the map-closures package)")
@@ -283,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("--root", help="dataset root holding the preset's sequences")
     suite.add_argument("--out", default="out/suite", help="output folder (default: %(default)s)")
     suite.add_argument("--methods", nargs="+", choices=METHOD_KEYS,
-                       help="methods (default: mf-lpr and scan-context)")
+                       help=f"methods (default: {' '.join(DEFAULT_METHODS)})")
     suite.add_argument("--list", action="store_true", help="list the presets and exit")
     suite.add_argument("--quiet", action="store_true", help="no progress bars")
     suite.set_defaults(handler=cmd_suite)
