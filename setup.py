@@ -18,7 +18,7 @@ setup(
     ],
     install_requires=["setuptools", "numpy", "scipy", "pyyaml", "tqdm", "rosbags", "matplotlib",
                       "pillow"],
-    extras_require={"icp": ["open3d-cpu"], "test": ["pytest", "hypothesis"]},
+    extras_require={"icp": ["open3d-cpu"], "slam": ["gtsam"], "test": ["pytest", "hypothesis"]},
     zip_safe=True,
     maintainer="mf_lpr_ros developers",
     maintainer_email="mf-lpr-ros@example.org",
@@ -31,6 +31,7 @@ setup(
             "mf-lpr = mf_lpr_ros.cli:main",
             "map_builder = mf_lpr_ros.ros.map_builder:main",
             "localiser = mf_lpr_ros.ros.localiser:main",
+            "pose_graph = mf_lpr_ros.ros.pose_graph:main",
         ],
     },
 )

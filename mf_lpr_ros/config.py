@@ -120,6 +120,16 @@ class SearchParams:
         true revisits from look-alike places (both reach 0.36-0.40); ICP fitness does (true
         revisits 0.71-0.85 but two at 0.64-0.66, look-alikes <= 0.66): the handheld preset
         uses 0.68.
+    distinct_radius_m: references farther than this from the match count as another place
+        when MatchResult.distinctiveness compares the match with the best other place.
+    min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).
+    consistency_min_support: odometry consistency (mf_lpr_ros/verification.py). When > 0 and
+        the scans' odometry is known, a match is accepted only when at least this many earlier
+        candidate matches (those passing the other tests) from the last consistency_window_m of
+        travel, each from a query at least consistency_min_separation_m from this one, agree
+        with it: the pose one implies, carried along the odometry, lies within
+        consistency_tolerance_m and consistency_tolerance_deg of the other's. A false match is
+        a one-off; a true revisit repeats along the path. 0 = off.
     """
 
     rotation_step_deg: float = 10.0
@@ -134,6 +144,13 @@ class SearchParams:
     prefilter_expand_m: float = 6.0
     backend: str = "auto"
     verify_fitness: float = 0.0
+    distinct_radius_m: float = 10.0
+    min_distinctiveness: float = 0.15
+    consistency_min_support: int = 2
+    consistency_window_m: float = 30.0
+    consistency_min_separation_m: float = 1.0
+    consistency_tolerance_m: float = 1.5
+    consistency_tolerance_deg: float = 5.0
 
     def __post_init__(self) -> None:
         _require(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
@@ -157,6 +174,16 @@ class SearchParams:
                  "'auto', 'numpy' or 'torch'", self.backend)
         _require(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",
                  self.verify_fitness)
+        _require(self.distinct_radius_m > 0, "distinct_radius_m", "> 0", self.distinct_radius_m)
+        _require(0.0 <= self.min_distinctiveness <= 1.0, "min_distinctiveness", "in [0, 1]",
+                 self.min_distinctiveness)
+        _require(self.consistency_min_support >= 0, "consistency_min_support", ">= 0",
+                 self.consistency_min_support)
+        for name in ("consistency_window_m", "consistency_tolerance_m",
+                     "consistency_tolerance_deg"):
+            _require(getattr(self, name) > 0, name, "> 0", getattr(self, name))
+        _require(self.consistency_min_separation_m >= 0, "consistency_min_separation_m", ">= 0",
+                 self.consistency_min_separation_m)
 
 
 @dataclass(frozen=True)
@@ -177,8 +204,7 @@ class Config:
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     # KITTI HDL-64E at 1.73 m: the band above the ground plane; 0.4 m matches the KITTI BEV images.
-    "kitti": {"descriptor": {"voxel_size": 0.4, "z_min": -1.2, "z_max": 3.0},
-              "search": {"min_confidence": 0.45}},
+    "kitti": {"descriptor": {"voxel_size": 0.4, "z_min": -1.2, "z_max": 3.0}},
     "nclt": {"descriptor": {"voxel_size": 0.75}},
     "oxford": {"descriptor": {"voxel_size": 1.3}},
     "wildplaces": {"descriptor": {"voxel_size": 0.3, "z_min": 1.0, "z_max": 3.0,
@@ -186,7 +212,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
     # Levelled with the pose's roll/pitch: a handheld sensor tilts 10 deg typically, 37 at worst.
     "handheld": {"descriptor": {"voxel_size": 0.3, "level": True},
-                 "search": {"max_shift_m": 6.0, "min_confidence": 0.28, "verify_fitness": 0.68},
+                 "search": {"max_shift_m": 6.0, "min_confidence": 0.28, "verify_fitness": 0.68,
+                            "min_distinctiveness": 0.0, "consistency_min_support": 0},
                  "spacing_m": 1.0},
 }
 

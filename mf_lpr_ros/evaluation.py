@@ -26,7 +26,9 @@ from .map_store import ReferenceMap
 from .pipeline import describe_scan, prepared_points, select_references
 from .pose import planar, wrap_angle
 from .scan_context import ScanContextIndex
+from .refine import refine_match
 from .search import MatchedFilterIndex
+from .verification import MatchVerifier
 
 RECALL_AT_N = 5
 _STAMP_MATCH_S = 1e-4
@@ -54,7 +56,8 @@ class Protocol:
 @dataclass
 class Retrieval:
     """A method's answer for one query: the reference (position in the reference list, -1 for
-    none), the query's estimated (x, y, yaw), a confidence, and candidates best first."""
+    none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
+    the method would publish it as a loop closure at its defaults."""
 
     reference: int
     pose: np.ndarray
@@ -62,6 +65,7 @@ class Retrieval:
     candidates: np.ndarray
     ms_global: float
     ms_local: float = 0.0
+    published: bool = False
 
 
 @dataclass
@@ -118,28 +122,47 @@ def _stamps_in(stamps: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     return nearest_keys(np.sort(wanted), stamps)[1] <= _STAMP_MATCH_S
 
 
+@dataclass
+class _DescribedScan:
+    occupancy: np.ndarray
+    points: np.ndarray | None
+
+
 class MatchedFilterMethod:
-    """MF-LPR (ours): the two-stage matched-filter search and its pose."""
+    """MF-LPR (ours): the two-stage matched-filter search and its pose; published closures are
+    those verification.MatchVerifier accepts (ICP where the scans have points and the preset
+    asks for it, odometry consistency on the sequence's poses)."""
 
     name = "MF-LPR (ours)"
 
     def __init__(self, config: Config) -> None:
         self.config = config
         self._index: MatchedFilterIndex | None = None
+        self._verifier = MatchVerifier(config.search)
 
-    def describe(self, scan: Scan, *, reference: bool) -> np.ndarray:
-        return describe_scan(scan, self.config.descriptor, reference=reference)
+    def describe(self, scan: Scan, *, reference: bool) -> _DescribedScan:
+        points = prepared_points(scan, self.config.descriptor) \
+            if self.config.search.verify_fitness > 0 and scan.points is not None else None
+        return _DescribedScan(describe_scan(scan, self.config.descriptor, reference=reference),
+                              points)
 
     def build(self, descriptors: list, poses: np.ndarray, stamps: np.ndarray) -> None:
         reference_map = ReferenceMap(self.config.descriptor)
-        for occupancy, pose, stamp in zip(descriptors, poses, stamps):
-            reference_map.append(occupancy, pose, float(stamp), len(reference_map))
+        for described, pose, stamp in zip(descriptors, poses, stamps):
+            reference_map.append(described.occupancy, pose, float(stamp), len(reference_map),
+                                 described.points)
         self._index = MatchedFilterIndex(reference_map, self.config.search)
 
-    def query(self, descriptor: np.ndarray, n_active: int) -> Retrieval:
-        match = self._index.query(descriptor, n_active=n_active)
+    def query(self, descriptor: _DescribedScan, n_active: int, odometry: np.ndarray
+              ) -> Retrieval:
+        match = self._index.query(descriptor.occupancy, n_active=n_active)
+        geometric = None
+        if descriptor.points is not None and self._index.map.has_clouds:
+            def geometric(found):
+                return refine_match(found, descriptor.points, self._index.map).fitness
+        verdict = self._verifier.verify(match, odometry, geometric)
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
-                         match.timings_ms["global"], match.timings_ms["local"])
+                         match.timings_ms["global"], match.timings_ms["local"], verdict.accepted)
 
 
 class ScanContextMethod:
@@ -161,20 +184,22 @@ class ScanContextMethod:
             self._index.append_context(context)
         self._poses = planar(poses)
 
-    def query(self, descriptor: np.ndarray, n_active: int) -> Retrieval:
+    def query(self, descriptor: np.ndarray, n_active: int, odometry: np.ndarray) -> Retrieval:
         started = time.perf_counter()
         found, yaw, distance, candidates = self._index.query_context(descriptor, n_active)
         elapsed = (time.perf_counter() - started) * 1e3
         pose = self._poses[found] + np.array([0.0, 0.0, yaw])
         pose[2] = wrap_angle(pose[2])
-        return Retrieval(found, pose, 1.0 - distance, candidates, elapsed)
+        return Retrieval(found, pose, 1.0 - distance, candidates, elapsed,
+                         published=distance < self._index.params.accept_distance)
 
 
 class MapClosuresMethod:
     """MapClosures (Gupta et al., the map-closures package): ORB features of BEV density maps in
     an HBST tree, then RANSAC. Fed single scans here (the same input as the other methods; it
     is built for local maps of many scans). Its pose is not used: the matched reference's
-    position is reported. Confidence: RANSAC inliers."""
+    position is reported. Confidence: RANSAC inliers. Every closure it returns passed its own
+    RANSAC test, so each is published."""
 
     name = "MapClosures"
     candidates_asked = 50
@@ -201,7 +226,7 @@ class MapClosuresMethod:
             self._next_id += 1
         self._poses = planar(poses)
 
-    def query(self, descriptor: np.ndarray, n_active: int) -> Retrieval:
+    def query(self, descriptor: np.ndarray, n_active: int, odometry: np.ndarray) -> Retrieval:
         started = time.perf_counter()
         query_id = self._next_id
         self._next_id += 1
@@ -215,7 +240,7 @@ class MapClosuresMethod:
         found.sort(key=lambda item: -item[0])
         candidates = np.array([reference for _, reference in found], dtype=np.int64)
         return Retrieval(int(candidates[0]), self._poses[candidates[0]].copy(),
-                         float(found[0][0]), candidates, elapsed)
+                         float(found[0][0]), candidates, elapsed, published=True)
 
 
 METHODS = {"mf-lpr": MatchedFilterMethod, "scan-context": ScanContextMethod,
@@ -242,8 +267,14 @@ def points_for_baselines(scan: Scan, config: Config) -> np.ndarray:
 
 
 def run_protocol(method, reference: Sequence, selection: Selection, *,
-                 query: Sequence | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """One record per query (see summarise) for method under a selection."""
+                 query: Sequence | None = None, truth_poses: np.ndarray | None = None,
+                 progress: bool = True) -> list[dict[str, Any]]:
+    """One record per query (see summarise) for method under a selection.
+
+    The method sees the sequences' poses (the map's poses and each query's odometry);
+    truth_poses, the query sequence's ground truth (and the references' in the single-sequence
+    protocol), defaults to the same poses.
+    """
     same_sequence = query is None
     query_seq = reference if same_sequence else query
     wanted_refs = {int(i): k for k, i in enumerate(selection.references)}
@@ -271,14 +302,15 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     method.build(ref_descriptors, reference.poses[selection.references],
                  reference.stamps[selection.references])
 
-    ref_planar = planar(reference.poses[selection.references])
+    truth_poses = query_seq.poses if truth_poses is None else truth_poses
+    ref_planar = planar((truth_poses if same_sequence else reference.poses)[selection.references])
     records = []
     for query_index, n_active in tqdm(zip(selection.queries, selection.n_active),
                                       total=len(selection.queries), desc=f"{method.name}: search",
                                       disable=not progress, unit="query"):
         descriptor, descriptor_ms = query_descriptors[int(query_index)]
-        retrieval = method.query(descriptor, int(n_active))
-        truth = planar(query_seq.poses[query_index])
+        retrieval = method.query(descriptor, int(n_active), planar(query_seq.poses[query_index]))
+        truth = planar(truth_poses[query_index])
         distances = np.linalg.norm(ref_planar[:n_active, :2] - truth[:2], axis=1)
         found = retrieval.reference
         records.append({
@@ -295,6 +327,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             "rre_deg": float(abs(np.degrees(wrap_angle(retrieval.pose[2] - truth[2]))))
             if found >= 0 else float("inf"),
             "confidence": float(retrieval.confidence),
+            "published": bool(retrieval.published and found >= 0),
             "ms_descriptor": descriptor_ms,
             "ms_global": retrieval.ms_global,
             "ms_local": retrieval.ms_local,
@@ -313,6 +346,13 @@ def summarise(records: list[dict[str, Any]], tolerance_m: float, n_references: i
     confidence: an accepted correct retrieval is a true positive, any other accepted match a
     false positive. recall_vs_threshold: recall as the distance threshold varies (positives
     fixed by tolerance). Timings are medians per query.
+
+    Loop closures as published (each method's own acceptance, MF-LPR's verification):
+    closures_published; closures_false, those whose estimated query position lies farther than
+    tolerance from the truth (the constraint a pose graph would get is wrong);
+    precision_published; recall_published, the positive queries with a correct published
+    closure; recall_at_100_precision, the largest recall over confidence thresholds with no
+    false match above the threshold (before verification).
     """
     def column(name: str) -> np.ndarray:
         return np.array([r[name] for r in records], dtype=float)
@@ -340,6 +380,9 @@ def summarise(records: list[dict[str, Any]], tolerance_m: float, n_references: i
     thresholds = np.linspace(0.0, 2.0 * tolerance_m, 41)[1:]
     ms_total = column("ms_descriptor") + column("ms_global") + column("ms_local")
     f1, f1_confidence, curve = precision_recall(confidence, correct, n_positive)
+    published = column("published").astype(bool)
+    closure_correct = rte <= tolerance_m
+    n_published = int(published.sum())
     return {
         "n_queries": n_positive,
         "n_evaluated": len(records),
@@ -357,6 +400,12 @@ def summarise(records: list[dict[str, Any]], tolerance_m: float, n_references: i
         "f1_max": f1,
         "confidence_at_f1_max": f1_confidence,
         "pr_curve": curve,
+        "closures_published": n_published,
+        "closures_false": int((published & ~closure_correct).sum()),
+        "precision_published": float((published & closure_correct).sum() / n_published)
+        if n_published else float("nan"),
+        "recall_published": rate(published & closure_correct),
+        "recall_at_100_precision": recall_at_full_precision(confidence, closure_correct, positive),
         "recall_vs_threshold": {
             "threshold_m": thresholds.tolist(),
             "retrieval": [rate(column("retrieved_distance_m") <= t) for t in thresholds],
@@ -366,6 +415,18 @@ def summarise(records: list[dict[str, Any]], tolerance_m: float, n_references: i
         "ms_global": stat(column("ms_global"), np.median),
         "ms_local": stat(column("ms_local"), np.median),
     }
+
+
+def recall_at_full_precision(confidence: np.ndarray, true_match: np.ndarray,
+                             positive: np.ndarray) -> float:
+    """The largest recall (true matches among positives) over accept thresholds on confidence
+    that accept no false match."""
+    if not positive.any():
+        return float("nan")
+    order = np.argsort(-confidence, kind="stable")
+    false_before = np.cumsum(~true_match[order])
+    clean = int(np.searchsorted(false_before, 1))
+    return float((true_match & positive)[order[:clean]].sum() / positive.sum())
 
 
 def precision_recall(confidence: np.ndarray, true_match: np.ndarray, n_positive: int

@@ -17,9 +17,10 @@ import numpy as np
 from .config import Config, SearchParams
 from .descriptor import InvalidCloudError, describe_points, stamp_seed_key
 from .map_store import ReferenceMap
-from .pose import interpolate_poses, level_points
+from .pose import interpolate_poses, level_points, planar
 from .refine import refine_match
 from .search import MatchedFilterIndex, MatchResult
+from .verification import MatchVerifier
 
 
 class InvalidPoseError(ValueError):
@@ -242,6 +243,7 @@ class LiveMatch:
     references_searched: int
     reference_stamp: float = math.nan
     fitness: float = math.nan
+    support: int = -1
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -251,14 +253,16 @@ class Localiser:
     relocalise: the map is fixed (built earlier). loop_closure: each paired scan that moved
     spacing_m becomes a reference, and a query only searches references older than
     exclude_recent_s (so it cannot match the scans it was just taken with).
-    A match is accepted when its confidence >= search.min_confidence, score >= min_score and,
-    when search.verify_fitness > 0, ICP against the reference cloud reaches that fitness.
+    A match is accepted when it passes verification.MatchVerifier: confidence, min_score,
+    distinctiveness, ICP fitness (search.verify_fitness > 0) and, when odometry_known (the
+    scans come with odometry poses), odometry consistency.
     """
 
     MODES = ("relocalise", "loop_closure")
 
     def __init__(self, reference_map: ReferenceMap, config: Config, *, mode: str = "relocalise",
-                 exclude_recent_s: float = 30.0, min_score: float = 0.0) -> None:
+                 exclude_recent_s: float = 30.0, min_score: float = 0.0,
+                 odometry_known: bool | None = None) -> None:
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
         reference_map.check_params(config.descriptor)
@@ -272,6 +276,9 @@ class Localiser:
         self._incoming: deque[PairedScan] = deque()
         self.rejected_references = 0
         self.last_reference_error = ""
+        odometry_known = mode == "loop_closure" if odometry_known is None else odometry_known
+        self.verifier = MatchVerifier(config.search, min_score=min_score,
+                                      odometry_known=odometry_known)
         self.verify = config.search.verify_fitness > 0
         if self.verify:
             _require_open3d()
@@ -307,8 +314,9 @@ class Localiser:
 
     def localise(self, stamp: float, points: np.ndarray, pose: np.ndarray | None = None
                  ) -> LiveMatch:
-        """Search the map for one scan (pose: only used for levelling). Call it from one thread:
-        it also adds the references queued by add_reference."""
+        """Search the map for one scan and verify the match (pose: world_T_sensor from odometry,
+        used for levelling and odometry consistency). Call it from one thread: it also adds the
+        references queued by add_reference."""
         if self._builder is not None:
             self._integrate_references()
         params = self.config.descriptor
@@ -321,26 +329,16 @@ class Localiser:
             n_active = int(np.searchsorted(self.map.stamps, stamp - self.exclude_recent_s,
                                            side="right"))
         match = self.index.query(occupancy, n_active) if n_active else None
-        reference_stamp = float(self.map.stamps[match.reference_index]) if match else math.nan
-        # Verification is the costly step: only matches that pass the cheap tests get it.
-        fitness = refine_match(match, points, self.map).fitness \
-            if match is not None and self.verify and match.confidence >= \
-            self.search.min_confidence and match.score >= self.min_score else math.nan
+        odometry = planar(pose) if pose is not None and self.verifier.consistency_active \
+            else None
+        verdict = self.verifier.verify(
+            match, odometry, lambda found: refine_match(found, points, self.map).fitness)
         if match is None:
-            return LiveMatch(stamp, None, False, "no reference to search yet", descriptor_ms,
-                             n_active)
-        reasons = []
-        if match.confidence < self.search.min_confidence:
-            reasons.append(f"confidence {match.confidence:.3f} < min_confidence "
-                           f"{self.search.min_confidence}")
-        if match.score < self.min_score:
-            reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
-        if self.verify and not fitness >= self.search.verify_fitness:
-            reasons.append(f"ICP fitness {fitness:.3f} < verify_fitness "
-                           f"{self.search.verify_fitness}")
+            return LiveMatch(stamp, None, False, verdict.reason, descriptor_ms, n_active)
         timings = {"descriptor": descriptor_ms, **match.timings_ms}
-        return LiveMatch(stamp, match, not reasons, "; ".join(reasons) or "accepted",
-                         descriptor_ms, n_active, reference_stamp, fitness, timings)
+        return LiveMatch(stamp, match, verdict.accepted, verdict.reason, descriptor_ms, n_active,
+                         float(self.map.stamps[match.reference_index]), verdict.fitness,
+                         verdict.support, timings)
 
     def reference_pose(self, index: int) -> np.ndarray:
         return np.array(self.map.poses[index])

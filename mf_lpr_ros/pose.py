@@ -185,3 +185,21 @@ def level_points(points: np.ndarray, orientation: np.ndarray) -> np.ndarray:
                         [0.0, 0.0, 1.0]])
     tilt = heading.T @ orientation
     return np.asarray(points)[:, :3] @ tilt.T
+
+
+def compose_planar(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """first (+) second for planar poses (..., 3): second expressed in first's frame."""
+    first, second = np.asarray(first, dtype=np.float64), np.asarray(second, dtype=np.float64)
+    c, s = np.cos(first[..., 2]), np.sin(first[..., 2])
+    return np.stack([first[..., 0] + c * second[..., 0] - s * second[..., 1],
+                     first[..., 1] + s * second[..., 0] + c * second[..., 1],
+                     wrap_angle(first[..., 2] + second[..., 2])], axis=-1)
+
+
+def relative_planar(origin: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """origin^-1 (+) target for planar poses (..., 3): target in origin's frame."""
+    origin, target = np.asarray(origin, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    c, s = np.cos(origin[..., 2]), np.sin(origin[..., 2])
+    dx, dy = target[..., 0] - origin[..., 0], target[..., 1] - origin[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy,
+                     wrap_angle(target[..., 2] - origin[..., 2])], axis=-1)

@@ -22,6 +22,7 @@ class ScanContextParams:
     """The paper's values: 20 rings, 60 sectors, 80 m, 10 ring-key candidates, accept < 0.2.
 
     height_offset lifts heights so the ground (sensor height below 0) stays positive.
+    accept_distance: a match is a loop closure below this distance (the paper's 0.2).
     """
 
     n_rings: int = 20
@@ -29,6 +30,7 @@ class ScanContextParams:
     max_range: float = 80.0
     n_candidates: int = 10
     height_offset: float = 2.0
+    accept_distance: float = 0.2
 
 
 class ScanContextIndex:

@@ -42,6 +42,10 @@ class MatchResult:
     covariance / relative_covariance: 3x3 over (x, y, yaw) in the map / reference frame.
     score: local peak score, normalised as SearchParams.score_normalisation says.
     confidence: cosine similarity of query and reference at the best alignment, in [0, 1].
+    distinctiveness: 1 - (best global score of a reference farther than
+        SearchParams.distinct_radius_m from the match) / (the match's global score), in [0, 1];
+        near 0 when another place scores as well (a look-alike), and 0 when no other place
+        was searched (nothing to tell the match apart from).
     candidates: reference indices by rank (the match first, then the global ranking).
     """
 
@@ -54,6 +58,7 @@ class MatchResult:
     covariance: np.ndarray
     relative_covariance: np.ndarray
     candidates: np.ndarray
+    distinctiveness: float = 1.0
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -168,10 +173,24 @@ class MatchedFilterIndex:
                 best = peak
         assert best is not None
         result = self._result(best, ranked)
+        result.distinctiveness = self._distinctiveness(searched, scores, best.reference)
         result.timings_ms = {"global": (global_done - started) * 1e3,
                              "prefilter": (prefilter_done - prepared) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
         return result
+
+    def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int) -> float:
+        """1 - (best global score among references farther than distinct_radius_m from
+        reference) / (reference's global score); see MatchResult."""
+        own = scores[searched == reference]
+        if not len(own) or own[0] <= 0:
+            return 0.0
+        positions = self.map.poses[searched, :2, 3]
+        offsets = positions - self.map.poses[reference, :2, 3]
+        elsewhere = np.einsum("nc,nc->n", offsets, offsets) > self.search.distinct_radius_m ** 2
+        if not elsewhere.any():
+            return 0.0
+        return float(np.clip(1.0 - scores[elsewhere].max() / own[0], 0.0, 1.0))
 
     def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
         """searched, then the references near its leaders that it lacks (prefilter_expand_m)."""

@@ -37,6 +37,8 @@ if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msg
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
     ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs
 fi
+# GTSAM: the pose graph of slam-eval and the pose_graph node (optional; both name it when missing).
+quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and pose_graph will be unavailable"
 quiet $pip install -q --no-deps -e .
 "$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" \
   || { echo "setup: the environment is incomplete" >&2; exit 1; }

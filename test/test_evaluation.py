@@ -105,7 +105,7 @@ def test_map_closures_baseline_runs_or_is_refused_by_name(tmp_path):
 
     method._closures = SimpleNamespace(get_top_k_closures=closures)
     # Reference 2 is too recent for this query; the closure between two references is ignored.
-    retrieval = method.query(cloud, n_active=2)
+    retrieval = method.query(cloud, n_active=2, odometry=np.zeros(3))
     assert (retrieval.reference, retrieval.confidence) == (0, 40.0)
-    assert method.query(cloud, n_active=3).reference == 2
+    assert method.query(cloud, n_active=3, odometry=np.zeros(3)).reference == 2
     assert asked == [3, 4]                      # queries get fresh ids after the references

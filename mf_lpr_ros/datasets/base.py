@@ -137,3 +137,23 @@ def read_xyzi_bin(path) -> np.ndarray:
     if raw.size % 4:
         raise DatasetError(f"{path}: size is not a multiple of 16 bytes (x y z intensity)")
     return raw.reshape(-1, 4)[:, :3]
+
+
+class PoseOverride(Sequence):
+    """Another sequence's scans with other poses (e.g. drifted odometry instead of the ground
+    truth): the scans it yields carry the new poses."""
+
+    def __init__(self, base: Sequence, poses: np.ndarray, name: str = "") -> None:
+        if poses.shape != (len(base), 4, 4):
+            raise ValueError(f"{len(base)} scans need ({len(base)}, 4, 4) poses, "
+                             f"got {poses.shape}")
+        self.base = base
+        self.name = name or base.name
+        self.stamps = base.stamps
+        self.poses = poses
+        self.frame_id = getattr(base, "frame_id", "")
+
+    def _read(self, indices: np.ndarray) -> Iterator[Scan]:
+        for scan in self.base.iter_scans(indices):
+            scan.pose = self.poses[scan.index]
+            yield scan

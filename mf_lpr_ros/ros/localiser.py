@@ -3,6 +3,8 @@
     ros2 run mf_lpr_ros localiser --ros-args -p map_path:=/data/site.mfmap \\
         -r relocalisation:=/initialpose            # re-initialise nav2 AMCL
     ros2 run mf_lpr_ros localiser --ros-args -p mode:=loop_closure -p pose_source:=odom
+    ros2 run mf_lpr_ros localiser --ros-args -p mode:=loop_closure -p pose_source:=odom \\
+        -p loop_closure_format:="[lio_sam]"                  # LIO-SAM's external closures
 
 Only the newest scan is searched: a scan arriving while the search is busy replaces the waiting
 one (counted as dropped), so a slow search never builds a backlog.
@@ -29,8 +31,11 @@ from ..live import (InvalidPoseError, LiveMatch, Localiser, PoseBuffer, ScanPose
                     relative_transform, relocalised_pose)
 from ..map_store import MapParameterMismatch, ReferenceMap
 from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
-from .messages import (diagnostics_message, loop_closure_message, match_markers,
-                       relocalisation_message)
+from .messages import (diagnostics_message, lio_sam_loop_message, loop_closure_message,
+                       match_markers, relocalisation_message)
+
+LOOP_CLOSURE_FORMATS = ("mf_lpr", "lio_sam")
+LIO_SAM_TOPIC = "lio_loop/loop_closure_detection"
 
 
 @dataclass
@@ -78,8 +83,18 @@ class LocaliserNode(LidarNode):
         self.future_tolerance_s = self.typed_parameter(
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
+        self.loop_closure_formats = set(self.typed_parameter(
+            "loop_closure_format", ["mf_lpr"], "loop-closure messages to publish: mf_lpr "
+            "(labelled array on 'loop_closure'), lio_sam ([query_s, reference_s] on "
+            f"'{LIO_SAM_TOPIC}'); several allowed",
+            lambda v: len(v) > 0 and set(v) <= set(LOOP_CLOSURE_FORMATS),
+            f"a non-empty list of {LOOP_CLOSURE_FORMATS}"))
         reliable = self.declare_reliable_qos()
         self.freeze_parameters()
+        if "lio_sam" in self.loop_closure_formats and self.mode != "loop_closure":
+            raise ParameterFault("parameter loop_closure_format lio_sam needs mode loop_closure: "
+                                 "LIO-SAM maps both stamps to its own keyframes, so the "
+                                 "reference must come from the same session")
 
         if self.mode == "loop_closure" and pose_source == "none":
             raise ParameterFault("parameter pose_source must name a pose stream in loop_closure "
@@ -91,7 +106,8 @@ class LocaliserNode(LidarNode):
                                  "descriptor.level needs each scan's roll and pitch")
         try:
             self.localiser = Localiser(reference_map, config, mode=self.mode,
-                                       exclude_recent_s=exclude_recent_s, min_score=min_score)
+                                       exclude_recent_s=exclude_recent_s, min_score=min_score,
+                                       odometry_known=pose_source != "none")
         except ValueError as error:
             raise ParameterFault(str(error)) from None
         self.map_frame_id = map_frame_id or reference_map.frame_id or "map"
@@ -104,7 +120,12 @@ class LocaliserNode(LidarNode):
         self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5, reliable))
         self.relocalisation_pub = self.create_publisher(PoseWithCovarianceStamped,
                                                         "relocalisation", 10)
-        self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100)
+        self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100) \
+            if "mf_lpr" in self.loop_closure_formats else None
+        # Reliable and keep-last: compatible with LIO-SAM's best-effort depth-1 subscriber and
+        # with the reliable ones of its forks.
+        self.lio_sam_pub = self.create_publisher(Float64MultiArray, LIO_SAM_TOPIC, 10) \
+            if "lio_sam" in self.loop_closure_formats else None
         self.markers_pub = self.create_publisher(MarkerArray, "markers", 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "diagnostics", 10)
         self.create_timer(diagnostics_period_s, self._publish_diagnostics)
@@ -123,7 +144,13 @@ class LocaliserNode(LidarNode):
         self._worker.start()
         self.get_logger().info(
             f"{self.mode}: {self.localiser.reference_count} references, voxel "
-            f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}'")
+            f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}', "
+            f"loop closures as {sorted(self.loop_closure_formats)}")
+        if config.search.consistency_min_support > 0 and \
+                not self.localiser.verifier.consistency_active:
+            self.get_logger().warning(
+                "odometry consistency is off: no pose_source gives the scans' odometry, so "
+                "matches are verified by confidence, distinctiveness and ICP only")
 
     def _open_map(self, map_path: str, config: Config, explicit: dict) -> ReferenceMap:
         if self.mode == "loop_closure":
@@ -222,9 +249,13 @@ class LocaliserNode(LidarNode):
         world_T_base = relocalised_pose(match, reference_pose, self.extrinsic)
         self.relocalisation_pub.publish(relocalisation_message(
             scan.stamp, self.map_frame_id, world_T_base, match.covariance))
-        self.loop_closure_pub.publish(loop_closure_message(
-            scan.stamp, match.reference_index, result.reference_stamp, relative_transform(match),
-            match.relative_covariance, match.score, match.confidence))
+        if self.loop_closure_pub is not None:
+            self.loop_closure_pub.publish(loop_closure_message(
+                scan.stamp, match.reference_index, result.reference_stamp,
+                relative_transform(match), match.relative_covariance, match.score,
+                match.confidence))
+        if self.lio_sam_pub is not None:
+            self.lio_sam_pub.publish(lio_sam_loop_message(scan.stamp, result.reference_stamp))
         if self.publish_markers:
             self.markers_pub.publish(match_markers(scan.stamp, self.map_frame_id, world_T_base,
                                                    reference_pose, True))

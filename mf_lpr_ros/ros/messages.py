@@ -1,8 +1,13 @@
 """Conversions between ROS 2 messages and the core's arrays.
 
-Loop closures travel as std_msgs/Float64MultiArray with one labelled dimension whose label
-names every element (LOOP_CLOSURE_LABEL); decode_loop_closure reads them back. Stamps are split
-into seconds and nanoseconds so they survive float64 exactly.
+Loop closures travel in the formats the localiser's loop_closure_format names:
+- mf_lpr: std_msgs/Float64MultiArray with one labelled dimension whose label names every
+  element (LOOP_CLOSURE_LABEL); decode_loop_closure reads them back. Stamps are split into
+  seconds and nanoseconds so they survive float64 exactly. The 36 covariance_* values are the
+  row-major 6x6 covariance (not information) of reference_T_query over x, y, z, roll, pitch,
+  yaw; the three a planar match does not observe hold UNOBSERVED_VARIANCE.
+- lio_sam: std_msgs/Float64MultiArray of exactly [query_stamp_s, reference_stamp_s], what
+  LIO-SAM and its forks read on lio_loop/loop_closure_detection.
 """
 
 from __future__ import annotations
@@ -71,7 +76,7 @@ def odometry_message(stamp: Time, frame_id: str, child_frame_id: str,
     message = Odometry()
     message.header = Header(stamp=stamp, frame_id=frame_id)
     message.child_frame_id = child_frame_id
-    _set_pose(message.pose.pose, world_T_child)
+    set_pose(message.pose.pose, world_T_child)
     return message
 
 
@@ -83,7 +88,7 @@ def covariance_6x6(planar_covariance: np.ndarray) -> list[float]:
     return [float(v) for v in full.ravel()]
 
 
-def _set_pose(target, transform: np.ndarray) -> None:
+def set_pose(target, transform: np.ndarray) -> None:
     target.position.x, target.position.y, target.position.z = (float(v) for v in transform[:3, 3])
     qx, qy, qz, qw = matrix_to_quaternion(transform[:3, :3])
     target.orientation.x, target.orientation.y = float(qx), float(qy)
@@ -94,7 +99,7 @@ def relocalisation_message(stamp: Time, frame_id: str, world_T_base: np.ndarray,
                            planar_covariance: np.ndarray) -> PoseWithCovarianceStamped:
     message = PoseWithCovarianceStamped()
     message.header = Header(stamp=stamp, frame_id=frame_id)
-    _set_pose(message.pose.pose, world_T_base)
+    set_pose(message.pose.pose, world_T_base)
     message.pose.covariance = covariance_6x6(planar_covariance)
     return message
 
@@ -113,6 +118,11 @@ def loop_closure_message(query_stamp: Time, reference_index: int, reference_stam
                                               stride=len(values))]
     message.data = values
     return message
+
+
+def lio_sam_loop_message(query_stamp: Time, reference_stamp: float) -> Float64MultiArray:
+    """[query_time_s, matched_time_s]: LIO-SAM's external loop-closure message."""
+    return Float64MultiArray(data=[stamp_to_seconds(query_stamp), float(reference_stamp)])
 
 
 def decode_loop_closure(message: Float64MultiArray) -> dict:
@@ -144,7 +154,7 @@ def match_markers(stamp: Time, frame_id: str, query_pose: np.ndarray,
                                                                               b=0.1, a=0.6)
     arrow = Marker(header=header, ns="mf_lpr", id=0, type=Marker.ARROW, action=Marker.ADD,
                    color=colour)
-    _set_pose(arrow.pose, query_pose)
+    set_pose(arrow.pose, query_pose)
     arrow.scale.x, arrow.scale.y, arrow.scale.z = 2.0, 0.4, 0.4
     link = Marker(header=header, ns="mf_lpr", id=1, type=Marker.LINE_STRIP, action=Marker.ADD,
                   color=colour)
