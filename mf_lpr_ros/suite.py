@@ -24,7 +24,9 @@ from .evaluation import METHODS, PairResult, Protocol, evaluate_pair
 
 DEFAULT_METHODS = ("mf-lpr", "scan-context")
 TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m",
-                 "rre_mean_deg", "success_rate", "f1_max", "ms_per_query")
+                 "rre_mean_deg", "success_rate", "f1_max", "closures_published",
+                 "closures_false", "precision_published", "recall_published",
+                 "recall_at_100_precision", "ms_per_query")
 
 
 @dataclass(frozen=True)
@@ -261,7 +263,8 @@ def format_table(rows: list[dict]) -> str:
              "|---" * (len(TABLE_COLUMNS) + 3) + "|"]
     for row in rows:
         lines.append(f"| {row['pair']} | {row['method']} | {row['n_queries']:.0f} | "
-                     + " | ".join(f"{row[key]:.3f}" for key in TABLE_COLUMNS) + " |")
+                     + " | ".join(f"{row[key]:.0f}" if key.startswith("closures_")
+                                  else f"{row[key]:.3f}" for key in TABLE_COLUMNS) + " |")
     return "\n".join(lines)
 
 

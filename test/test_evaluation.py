@@ -48,10 +48,29 @@ def test_query_split_restricts_queries_by_stamp():
     assert selection.queries.tolist() == [3, 7]
 
 
-def _record(nearest, retrieved, rte, rre, confidence, candidates):
+def _record(nearest, retrieved, rte, rre, confidence, candidates, published=False):
     return {"nearest_reference_m": nearest, "retrieved_distance_m": retrieved, "rte_m": rte,
             "rre_deg": rre, "confidence": confidence, "candidate_distances_m": candidates,
-            "ms_descriptor": 1.0, "ms_global": 2.0, "ms_local": 3.0}
+            "published": published, "ms_descriptor": 1.0, "ms_global": 2.0, "ms_local": 3.0}
+
+
+def test_published_closure_metrics_count_what_a_back_end_would_receive():
+    records = [
+        _record(1.0, 1.0, 0.5, 1.0, 0.9, [1.0], published=True),    # correct closure
+        _record(1.0, 9.0, 2.5, 3.0, 0.8, [9.0], published=True),    # far reference, right pose
+        _record(8.0, 8.0, 8.0, 9.0, 0.85, [8.0], published=True),   # false: pose 8 m off
+        _record(1.0, 1.0, 0.4, 1.0, 0.95, [1.0]),                   # correct, not published
+        _record(1.0, 1.0, 6.0, 1.0, 0.7, [1.0]),                    # wrong pose, not published
+    ]
+    summary = summarise(records, tolerance_m=3.0, n_references=4)
+    assert summary["closures_published"] == 3
+    assert summary["closures_false"] == 1
+    assert summary["precision_published"] == pytest.approx(2 / 3)
+    assert summary["recall_published"] == pytest.approx(2 / 4)      # 4 revisit queries
+    # By confidence: 0.95 T, 0.9 T, 0.85 F -> two of four before the first false match.
+    assert summary["recall_at_100_precision"] == pytest.approx(2 / 4)
+    nothing = summarise([_record(1.0, 1.0, 0.5, 1.0, 0.9, [1.0])], 3.0, 1)
+    assert nothing["closures_published"] == 0 and np.isnan(nothing["precision_published"])
 
 
 def test_summary_metrics_follow_their_definitions():

@@ -125,3 +125,38 @@ def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
     row = next(line for line in printed.splitlines() if "within 0.5 m and 2 deg" in line)
     correct, total = (int(n) for n in row.split("|")[2].split(" of "))
     assert total >= 3 and correct == total
+
+
+def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
+    """The localiser's closures on the real bag at its defaults: none false, and the example
+    back end keeps them all and stays on the bag's poses."""
+    pytest.importorskip("gtsam", reason="gtsam not installed (pip install gtsam)")
+    from nav_msgs.msg import Path
+
+    from mf_lpr_ros.pose_graph import absolute_trajectory_error
+    from mf_lpr_ros.ros.pose_graph import PoseGraphNode
+
+    bag, sequence = balm_bag
+    localiser = ros_graph.start(LocaliserNode, preset="handheld", mode="loop_closure",
+                                pose_source="odom", exclude_recent_s=EXCLUDE_RECENT_S)
+    back_end = ros_graph.start(PoseGraphNode, keyframe_spacing_m=0.5, publish_period_s=0.5)
+    closures = ros_graph.collect(Float64MultiArray, "loop_closure")
+    paths = ros_graph.collect(Path, "path")
+    replay_bag(bag, rate=3.0, node=ros_graph.node, wait_for_subscribers=2, progress=False,
+               topics=["/points", "/odom"])
+    ros_graph.wait_for(localiser.is_idle, 30)
+    assert ros_graph.wait_for(lambda: back_end.counters["closures_received"] == len(closures))
+    assert len(closures) >= 5
+    truth = planar(sequence.poses)
+    stamp_index = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
+    for closure in map(decode_loop_closure, closures):
+        query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
+        reference = stamp_index[round(stamp_to_seconds(closure["reference_stamp"]), 3)]
+        implied = sequence.poses[reference] @ closure["reference_T_query"]
+        assert np.hypot(*(implied[:2, 3] - truth[query, :2])) < 0.5     # no false closure
+    assert back_end.graph.graph.closures_used == len(closures)
+    assert ros_graph.wait_for(lambda: paths and len(paths[-1].poses) ==
+                              len(back_end.graph.keyframe_stamps))
+    keyframes = [stamp_index[round(stamp_to_seconds(p.header.stamp), 3)] for p in paths[-1].poses]
+    path = np.array([[p.pose.position.x, p.pose.position.y, 0.0] for p in paths[-1].poses])
+    assert absolute_trajectory_error(path, truth[keyframes]) < 0.1

@@ -1,0 +1,138 @@
+"""Match verification: distinctiveness, odometry consistency and the order of the tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.config import DescriptorParams, SearchParams
+from mf_lpr_ros.descriptor import describe_points
+from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.pose import compose_planar
+from mf_lpr_ros.search import MatchedFilterIndex, MatchResult
+from mf_lpr_ros.synthetic import scan_world
+from mf_lpr_ros.verification import MatchVerifier
+
+PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
+PLACES = [(0.0, 0.0, 0.0), (25.0, 0.0, 1.0), (0.0, 25.0, -2.0), (-25.0, -10.0, 2.5)]
+
+
+def _map(world, look_alike: bool) -> ReferenceMap:
+    """References at PLACES; with look_alike, the first place's scan is stored a second time
+    as if seen 40 m away (a place that looks the same as another)."""
+    rng = np.random.default_rng(0)
+    reference_map = ReferenceMap(PARAMS)
+    for index, place in enumerate(PLACES):
+        points, pose = scan_world(world, *place, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=index),
+                             pose, float(index), index)
+        if look_alike and index == 0:
+            elsewhere = pose.copy()
+            elsewhere[:2, 3] += [40.0, 40.0]
+            reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=99),
+                                 elsewhere, 0.5, 99)
+    return reference_map
+
+
+def test_a_planted_look_alike_place_is_rejected(world):
+    search = SearchParams(min_confidence=0.3, consistency_min_support=0)
+    points, _ = scan_world(world, 0.8, -0.5, 0.2, np.random.default_rng(5))
+    query = describe_points(points, PARAMS)
+    for look_alike, expected in ((False, True), (True, False)):
+        match = MatchedFilterIndex(_map(world, look_alike), search).query(query)
+        verdict = MatchVerifier(search, odometry_known=False).verify(match)
+        assert match.confidence >= search.min_confidence
+        assert verdict.accepted is expected, (look_alike, match.distinctiveness, verdict.reason)
+        if look_alike:
+            assert match.distinctiveness < 0.05 and "distinctiveness" in verdict.reason
+        else:
+            assert match.distinctiveness > 0.3
+
+
+def _match(pose, confidence=0.8, distinctiveness=0.8) -> MatchResult:
+    return MatchResult(reference_index=0, score=1.0, confidence=confidence,
+                       shift_m=np.zeros(2), rotation_rad=0.0, pose=np.asarray(pose, float),
+                       covariance=np.eye(3), relative_covariance=np.eye(3),
+                       candidates=np.zeros(1, int), distinctiveness=distinctiveness)
+
+
+def _drive(n: int, step_m: float = 1.5) -> np.ndarray:
+    """Planar poses along a gentle curve."""
+    poses = [np.zeros(3)]
+    for _ in range(n - 1):
+        poses.append(compose_planar(poses[-1], np.array([step_m, 0.0, math.radians(3)])))
+    return np.array(poses)
+
+
+def test_odometry_consistency_accepts_repeated_agreement_and_rejects_a_one_off():
+    search = SearchParams(consistency_min_support=2)
+    verifier = MatchVerifier(search)
+    odometry = _drive(12)
+    # The map frame is the odometry frame turned and moved (another session's map).
+    map_T_odom = np.array([100.0, -20.0, 0.7])
+    truth = compose_planar(map_T_odom, odometry)
+    verdicts = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        estimate = pose + [15.0, 4.0, 0.5] if index == 6 else pose + [0.2, -0.1, 0.01]
+        verdicts.append(verifier.verify(_match(estimate), odo))
+    accepted = [v.accepted for v in verdicts]
+    # The first two true matches wait for support; the one-off false match (6) never gets it,
+    # nor does it count as support for the later true ones.
+    assert accepted[:2] == [False, False] and "odometry consistency" in verdicts[0].reason
+    assert accepted[2:6] == [True] * 4 and accepted[7:] == [True] * 5
+    assert not accepted[6] and verdicts[6].support == 0
+    assert verdicts[5].support == 5 and verdicts[7].support == 6
+
+
+def test_a_stationary_robot_repeating_a_false_match_gets_no_support():
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2,
+                                          consistency_min_separation_m=1.0))
+    wrong = np.array([50.0, 50.0, 1.0])
+    verdicts = [verifier.verify(_match(wrong), np.zeros(3)) for _ in range(10)]
+    assert not any(v.accepted for v in verdicts)
+    assert {v.support for v in verdicts} == {0}
+
+
+def test_support_expires_after_the_travel_window():
+    verifier = MatchVerifier(SearchParams(consistency_min_support=1, consistency_window_m=10.0))
+    odometry = _drive(20, step_m=2.0)
+    first = verifier.verify(_match(odometry[0]), odometry[0])
+    for pose in odometry[1:8]:
+        verifier.verify(None, pose)                    # travel without a match: 14 m
+    later = verifier.verify(_match(odometry[8]), odometry[8])
+    assert first.support == 0 and later.support == 0 and not later.accepted
+
+
+def test_cheap_tests_run_before_icp_and_icp_decides():
+    search = SearchParams(min_confidence=0.5, min_distinctiveness=0.2, verify_fitness=0.6,
+                          consistency_min_support=0)
+    verifier = MatchVerifier(search)
+    calls = []
+
+    def fitness(value):
+        def run(match):
+            calls.append(match)
+            return value
+        return run
+
+    assert not verifier.verify(_match(np.zeros(3), confidence=0.4), None, fitness(0.9)).accepted
+    assert not verifier.verify(_match(np.zeros(3), distinctiveness=0.1), None,
+                               fitness(0.9)).accepted
+    assert calls == []
+    low = verifier.verify(_match(np.zeros(3)), None, fitness(0.5))
+    high = verifier.verify(_match(np.zeros(3)), None, fitness(0.7))
+    assert (low.accepted, high.accepted) == (False, True) and len(calls) == 2
+    assert low.fitness == 0.5 and "ICP fitness" in low.reason
+    missing = verifier.verify(_match(np.zeros(3)), None, None)
+    assert not missing.accepted and "verify_fitness" in missing.reason
+
+
+def test_consistency_without_odometry_is_refused_or_skipped():
+    search = SearchParams(consistency_min_support=2)
+    with pytest.raises(ValueError, match="odometry"):
+        MatchVerifier(search).verify(_match(np.zeros(3)), None)
+    skipped = MatchVerifier(search, odometry_known=False)
+    assert not skipped.consistency_active
+    assert skipped.verify(_match(np.zeros(3)), None).accepted
