@@ -75,7 +75,7 @@ def cmd_localise(args: argparse.Namespace) -> int:
                                  progress=not args.quiet)
     columns = ["index", "stamp", "ref_index", "ref_stamp", "score", "confidence", "accepted", "x",
                "y", "yaw", "gt_x", "gt_y", "gt_yaw", "translation_error_m", "yaw_error_deg",
-               "ms_descriptor", "ms_global", "ms_local"]
+               "ms_descriptor", "ms_global", "ms_local", "reason"]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w", newline="") as handle:
         writer = csv.writer(handle)
@@ -86,11 +86,11 @@ def cmd_localise(args: argparse.Namespace) -> int:
             writer.writerow([
                 outcome.index, f"{outcome.stamp:.6f}", match.reference_index,
                 f"{reference_map.stamps[match.reference_index]:.6f}", f"{match.score:.6g}",
-                f"{match.confidence:.4f}", int(match.confidence >= search.min_confidence),
+                f"{match.confidence:.4f}", int(outcome.verdict.accepted),
                 *(f"{v:.4f}" for v in match.pose), *(f"{v:.4f}" for v in truth),
                 f"{outcome.translation_error_m:.4f}", f"{outcome.yaw_error_deg:.3f}",
                 f"{outcome.descriptor_ms:.2f}", f"{match.timings_ms['global']:.2f}",
-                f"{match.timings_ms['local']:.2f}"])
+                f"{match.timings_ms['local']:.2f}", outcome.verdict.reason])
     errors = np.array([o.translation_error_m for o in outcomes])
     print(f"wrote {args.out}: {len(outcomes)} queries against {len(reference_map)} references"
           + (f"; median translation error {np.nanmedian(errors):.3f} m"

@@ -16,6 +16,7 @@ from .map_store import ReferenceMap
 from .pose import level_points, planar, wrap_angle
 from .refine import refine_match
 from .search import MatchedFilterIndex, MatchResult
+from .verification import MatchVerifier, Verdict
 
 
 def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> np.ndarray:
@@ -96,6 +97,7 @@ class QueryOutcome:
     stamp: float
     match: MatchResult
     descriptor_ms: float
+    verdict: Verdict
     truth: np.ndarray | None = None
 
     @property
@@ -113,12 +115,15 @@ class QueryOutcome:
 def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: SearchParams, *,
                       indices: Iterable[int] | None = None, icp: bool = False,
                       progress: bool = True) -> list[QueryOutcome]:
-    """Match every (selected) scan of a sequence against a map; optionally refine by ICP
-    against the reference clouds the map keeps."""
+    """Match every (selected) scan of a sequence against a map and verify each match as the
+    localiser does (verification.MatchVerifier; the sequence's poses, when every scan has one,
+    serve as odometry). icp: refine every pose by ICP against the map's reference clouds."""
     if icp and not reference_map.has_clouds:
         raise ValueError("ICP refinement needs a map that keeps reference clouds "
                          "(build it with --keep-clouds)")
     index = MatchedFilterIndex(reference_map, search)
+    posed = sequence.poses is not None and bool(np.isfinite(sequence.poses).all())
+    verifier = MatchVerifier(search, odometry_known=posed)
     outcomes = []
     selected = list(range(len(sequence))) if indices is None else list(indices)
     for scan in tqdm(sequence.iter_scans(selected), total=len(selected), desc="localise",
@@ -127,8 +132,15 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         occupancy = describe_scan(scan, reference_map.params, reference=False)
         descriptor_ms = (time.perf_counter() - started) * 1e3
         match = index.query(occupancy)
-        if icp:
-            refine_match(match, prepared_points(scan, reference_map.params), reference_map)
+        geometric = None
+        if reference_map.has_clouds and scan.points is not None:
+            points = prepared_points(scan, reference_map.params)
+
+            def geometric(found):
+                return refine_match(found, points, reference_map).fitness
+        verdict = verifier.verify(match, planar(scan.pose) if posed else None, geometric)
+        if icp and np.isnan(verdict.fitness) and geometric is not None:
+            geometric(match)
         truth = planar(scan.pose) if scan.pose is not None and np.isfinite(scan.pose).all() else None
-        outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, truth))
+        outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, verdict, truth))
     return outcomes

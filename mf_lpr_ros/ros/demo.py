@@ -8,6 +8,7 @@ With a real bag: map_builder and the localiser in loop_closure mode listen to on
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import time
@@ -23,10 +24,12 @@ from ..datasets.rosbag import RosbagSequence
 from ..map_store import ReferenceMap
 from ..pipeline import revisits
 from ..pose import planar, pose_matrix, wrap_angle
+from ..pose_graph import absolute_trajectory_error
 from ..simulator import WORLDS, write_bag
 from .graph import RosGraph
 from .localiser import LocaliserNode
 from .map_builder import MapBuilderNode
+from .pose_graph import PoseGraphNode
 from .messages import decode_loop_closure, stamp_to_seconds
 from .replay import replay_bag
 
@@ -256,8 +259,9 @@ def _overlay(ax, result: WorldResult) -> None:
 def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1.0,
                          exclude_recent_s: float = 25.0, revisit_radius_m: float = 3.0,
                          progress: bool = True) -> list[tuple[str, str]]:
-    """Replay a real bag into map_builder and a loop_closure localiser; (measure, value) rows:
-    closures vs revisits, their pose errors against the bag's poses, latency."""
+    """Replay a real bag into map_builder, a loop_closure localiser and the pose_graph back end
+    (when gtsam is installed); (measure, value) rows: closures vs revisits, their pose errors
+    against the bag's poses, latency, the back end's path."""
     sequence = RosbagSequence(bag)
     if sequence.poses is None:
         raise ValueError(f"{bag}: loop-closure mode needs a pose topic (Odometry or PoseStamped)")
@@ -273,6 +277,8 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
                               if_exists="overwrite", pose_source=pose_source)
         localiser = graph.start(LocaliserNode, preset=preset, mode="loop_closure",
                                 pose_source=pose_source, exclude_recent_s=exclude_recent_s)
+        back_end = graph.start(PoseGraphNode, keyframe_spacing_m=0.5) \
+            if importlib.util.find_spec("gtsam") else None
         closures = graph.collect(Float64MultiArray, "loop_closure")
         poses = graph.collect(PoseWithCovarianceStamped, "relocalisation")
         replay_bag(bag, rate=rate, node=graph.node, wait_for_subscribers=2, progress=progress,
@@ -280,6 +286,9 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
         graph.wait_for(localiser.is_idle, 30)
         time.sleep(0.3)
         counters, latency = localiser.counters.copy(), np.array(localiser.latencies_ms)
+        if back_end is not None:
+            graph.wait_for(lambda: back_end.counters["closures_received"] == len(closures), 10)
+            back_end_rows = _back_end_rows(back_end, sequence)
         graph.stop(builder)
         references = len(ReferenceMap.load(map_path))
     finally:
@@ -315,7 +324,19 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
          f"{np.median(yaw):.2f} / {yaw.max():.2f}" if len(yaw) else "-"),
         ("latency scan -> published closure, median / p95 (ms)",
          f"{np.median(latency):.1f} / {np.percentile(latency, 95):.1f}" if len(latency) else "-"),
+        *(back_end_rows if back_end is not None else
+          [("pose_graph back end", "not run: gtsam is not installed (pip install gtsam)")]),
     ]
+
+
+def _back_end_rows(back_end, sequence: RosbagSequence) -> list[tuple[str, str]]:
+    """The pose_graph node's keyframes and closures, and its path against the bag's poses."""
+    keyframes = np.searchsorted(sequence.stamps, np.array(back_end.graph.keyframe_stamps) - 1e-4)
+    ate = absolute_trajectory_error(back_end.graph.estimate, planar(sequence.poses)[keyframes])
+    return [("pose_graph: keyframes / closures received / used",
+             f"{len(keyframes)} / {back_end.counters['closures_received']} / "
+             f"{back_end.graph.graph.closures_used}"),
+            ("pose_graph: path error against the bag's poses (ATE, m)", f"{ate:.3f}")]
 
 
 def choose_preset(bag: Path) -> str:
