@@ -54,7 +54,8 @@ def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0
         reference_map.save(map_path)
         graph = RosGraph()
         try:
-            node = graph.start(LocaliserNode, preset="kitti", map_path=str(map_path))
+            node = graph.start(LocaliserNode, preset="kitti", map_path=str(map_path),
+                               publish_mode="continuous")
             publisher = graph.publisher(PointCloud2, "points")
             graph.wait_for_subscribers(publisher)
             stop = threading.Event()

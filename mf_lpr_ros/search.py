@@ -34,6 +34,17 @@ _QUADRATIC_FIT = np.linalg.pinv(np.stack([
 
 
 @dataclass
+class Hypothesis:
+    """One finalist of the local stage: its reference, the query pose it implies (x, y, yaw in
+    the map frame), its local score and confidence."""
+
+    reference_index: int
+    pose: np.ndarray
+    score: float
+    confidence: float
+
+
+@dataclass
 class MatchResult:
     """The best reference for a query and the pose it implies.
 
@@ -47,6 +58,8 @@ class MatchResult:
         near 0 when another place scores as well (a look-alike), and 0 when no other place
         was searched (nothing to tell the match apart from).
     candidates: reference indices by rank (the match first, then the global ranking).
+    hypotheses: the local stage's finalists (SearchParams.top_n) by local score, the match
+        first, each with the pose it implies.
     """
 
     reference_index: int
@@ -59,6 +72,7 @@ class MatchResult:
     relative_covariance: np.ndarray
     candidates: np.ndarray
     distinctiveness: float = 1.0
+    hypotheses: list[Hypothesis] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -166,14 +180,18 @@ class MatchedFilterIndex:
         finalists = order[: self.search.top_n]
         located = (self.bank.peaks(volume, finalists) if volume is not None
                    else self.bank.locate(operator, searched[finalists]))
-        best: _LocalPeak | None = None
-        for reference, (angle_index, *_) in zip(searched[finalists], located):
-            peak = self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
-            if best is None or peak.score > best.score:
-                best = peak
-        assert best is not None
+        peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
+                 for reference, (angle_index, *_) in zip(searched[finalists], located)]
+        peaks.sort(key=lambda peak: -peak.score)
+        best = peaks[0]
         result = self._result(best, ranked)
         result.distinctiveness = self._distinctiveness(searched, scores, best.reference)
+        result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
+                                        result.confidence)]
+        for peak in peaks[1:]:
+            other = self._result(peak, ranked)
+            result.hypotheses.append(Hypothesis(other.reference_index, other.pose, other.score,
+                                                other.confidence))
         result.timings_ms = {"global": (global_done - started) * 1e3,
                              "prefilter": (prefilter_done - prepared) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}

@@ -33,9 +33,10 @@ quiet() {
 }
 quiet $pip install -q --upgrade pip
 quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis open3d-cpu
-if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg" 2>/dev/null; then
+if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg, std_srvs.srv, lifecycle_msgs.msg" 2>/dev/null; then
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
-    ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs
+    ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs \
+    ros-jazzy-std-srvs ros-jazzy-lifecycle-msgs
 fi
 # GTSAM: the pose graph of slam-eval and the pose_graph node (optional; both name it when missing).
 quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and pose_graph will be unavailable"

@@ -52,7 +52,8 @@ def synthetic_map(tmp_path_factory, world):
 
 def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthetic_map):
     path, queries = synthetic_map
-    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path))
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
+                           publish_mode="continuous")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     closures = ros_graph.collect(Float64MultiArray, "loop_closure")
     publisher = ros_graph.publisher(PointCloud2, "points")
@@ -82,7 +83,8 @@ def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthe
 
 def _relocaliser(ros_graph, map_path):
     """A relocalise-mode localiser on map_path, its published poses, a publisher of scans."""
-    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(map_path))
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(map_path),
+                           publish_mode="continuous")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     publisher = ros_graph.publisher(PointCloud2, "points")
     ros_graph.wait_for_subscribers(publisher)
@@ -220,7 +222,8 @@ def test_map_builder_refuses_to_overwrite_unless_told(ros_graph, synthetic_map, 
 
 def test_reliable_qos_receives_from_reliable_publishers_only(ros_graph, synthetic_map):
     path, queries = synthetic_map
-    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path), reliable_qos=True)
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path), reliable_qos=True,
+                           publish_mode="continuous")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     best_effort = ros_graph.publisher(PointCloud2, "points", reliable=False)
     reliable = ros_graph.publisher(PointCloud2, "points", reliable=True)
@@ -234,7 +237,7 @@ def test_reliable_qos_receives_from_reliable_publishers_only(ros_graph, syntheti
 def test_stamps_and_frames_that_do_not_fit_are_refused(ros_graph, synthetic_map):
     path, queries = synthetic_map
     node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
-                           sensor_frame_id="velodyne")
+                           sensor_frame_id="velodyne", publish_mode="continuous")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     publisher = ros_graph.publisher(PointCloud2, "points")
     ros_graph.wait_for_subscribers(publisher)

@@ -85,7 +85,7 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
     builder.save()
 
     node = ros_graph.start(LocaliserNode, preset="handheld", map_path=str(map_path),
-                           pose_source="odom")
+                           pose_source="odom", publish_mode="continuous")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     clouds = ros_graph.publisher(PointCloud2, "points")
     odometry = ros_graph.publisher(Odometry, "odom")

@@ -47,6 +47,11 @@ def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref,
     np.testing.assert_allclose(result.shift_m, local, atol=0.15)
     assert result.candidates[0] == expected_ref
     assert 0.3 < result.confidence <= 1.0
+    # The local stage's finalists, best first, the first being the match itself.
+    assert len(result.hypotheses) == 2
+    assert result.hypotheses[0].reference_index == expected_ref
+    assert np.array_equal(result.hypotheses[0].pose, result.pose)
+    assert result.hypotheses[0].score >= result.hypotheses[1].score
     assert np.all(np.linalg.eigvalsh(result.covariance) > 0)
     assert set(result.timings_ms) == {"global", "prefilter", "local"}
 

@@ -112,6 +112,7 @@ def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int
     graph.stop(builder)
 
     localiser = graph.start(LocaliserNode, preset=preset, map_path=str(map_path),
+                            publish_mode="continuous",
                             **{"search.verify_fitness": VERIFY_FITNESS,
                                "search.min_distinctiveness": DEMO_MIN_DISTINCTIVENESS})
     poses = graph.collect(PoseWithCovarianceStamped, "relocalisation")

@@ -1,28 +1,39 @@
 """localiser node: live scans -> relocalisation poses and loop closures.
 
     ros2 run mf_lpr_ros localiser --ros-args -p map_path:=/data/site.mfmap \\
-        -r relocalisation:=/initialpose            # re-initialise nav2 AMCL
+        -r relocalisation:=/initialpose            # nav2 AMCL, on request:
+    ros2 service call /localiser/relocalise std_srvs/srv/Trigger
     ros2 run mf_lpr_ros localiser --ros-args -p mode:=loop_closure -p pose_source:=odom
     ros2 run mf_lpr_ros localiser --ros-args -p mode:=loop_closure -p pose_source:=odom \\
         -p loop_closure_format:="[lio_sam]"                  # LIO-SAM's external closures
 
 Only the newest scan is searched: a scan arriving while the search is busy replaces the waiting
 one (counted as dropped), so a slow search never builds a backlog.
+
+publish_mode on_request (default): `relocalisation` is published once per call of the
+~/relocalise Trigger service, with the first scan after the call whose match passes
+verification, and the pose is returned in the reply; continuous: every accepted scan.
+Loop closures are published for every accepted scan in either mode.
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from ..config import Config
@@ -31,11 +42,18 @@ from ..live import (InvalidPoseError, LiveMatch, Localiser, PoseBuffer, ScanPose
                     relative_transform, relocalised_pose)
 from ..map_store import MapParameterMismatch, ReferenceMap
 from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
-from .messages import (diagnostics_message, lio_sam_loop_message, loop_closure_message,
-                       match_markers, relocalisation_message)
+from .messages import (candidates_message, confidences_message, diagnostics_message,
+                       lio_sam_loop_message, loop_closure_message, match_markers,
+                       relocalisation_message)
 
 LOOP_CLOSURE_FORMATS = ("mf_lpr", "lio_sam")
 LIO_SAM_TOPIC = "lio_loop/loop_closure_detection"
+PUBLISH_MODES = ("on_request", "continuous")
+# Reliable (AMCL's /initialpose subscription) and transient local: a late subscriber still gets
+# the last pose.
+LATCHED_POSE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
+                              reliability=QoSReliabilityPolicy.RELIABLE,
+                              durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @dataclass
@@ -45,6 +63,14 @@ class _PendingScan:
     points: np.ndarray
     pose: np.ndarray | None
     received: float
+
+
+@dataclass
+class _Request:
+    """A relocalisation request: answered by the first scan received after `asked`."""
+
+    asked: float
+    answer: Future = field(default_factory=Future)
 
 
 class LocaliserNode(LidarNode):
@@ -83,6 +109,13 @@ class LocaliserNode(LidarNode):
         self.future_tolerance_s = self.typed_parameter(
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
+        self.publish_mode = self.typed_parameter(
+            "publish_mode", "on_request", "on_request: publish relocalisation once per "
+            "~/relocalise call (nav2); continuous: for every accepted scan",
+            lambda v: v in PUBLISH_MODES, f"one of {PUBLISH_MODES}")
+        self.request_timeout_s = self.typed_parameter(
+            "request_timeout_s", 10.0, "a ~/relocalise call fails when no scan passes "
+            "verification within this many seconds", lambda v: v > 0, "> 0")
         self.loop_closure_formats = set(self.typed_parameter(
             "loop_closure_format", ["mf_lpr"], "loop-closure messages to publish: mf_lpr "
             "(labelled array on 'loop_closure'), lio_sam ([query_s, reference_s] on "
@@ -119,7 +152,15 @@ class LocaliserNode(LidarNode):
             self.subscribe_poses(pose_source, self.poses, self._pair, reliable)
         self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5, reliable))
         self.relocalisation_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                        "relocalisation", 10)
+                                                        "relocalisation", LATCHED_POSE_QOS)
+        self.candidates_pub = self.create_publisher(PoseArray, "~/candidates", 10)
+        self.confidences_pub = self.create_publisher(Float64MultiArray,
+                                                     "~/candidate_confidences", 10)
+        self._requests: list[_Request] = []
+        # A group of its own: while a request awaits its scan, the executor keeps running the
+        # scan callbacks (the default group would be held by the awaiting handler).
+        self.create_service(Trigger, "~/relocalise", self._on_relocalise,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100) \
             if "mf_lpr" in self.loop_closure_formats else None
         # Reliable and keep-last: compatible with LIO-SAM's best-effort depth-1 subscriber and
@@ -247,8 +288,13 @@ class LocaliserNode(LidarNode):
             return
         reference_pose = self.localiser.reference_pose(match.reference_index)
         world_T_base = relocalised_pose(match, reference_pose, self.extrinsic)
-        self.relocalisation_pub.publish(relocalisation_message(
-            scan.stamp, self.map_frame_id, world_T_base, match.covariance))
+        with self._wake:
+            answering = [r for r in self._requests if r.asked <= scan.received]
+            self._requests = [r for r in self._requests if r.asked > scan.received]
+        if self.publish_mode == "continuous" or answering:
+            self._publish_pose(scan, match, world_T_base)
+        for request in answering:
+            request.answer.set_result(self._answer(scan, match, world_T_base))
         if self.loop_closure_pub is not None:
             self.loop_closure_pub.publish(loop_closure_message(
                 scan.stamp, match.reference_index, result.reference_stamp,
@@ -261,6 +307,51 @@ class LocaliserNode(LidarNode):
                                                    reference_pose, True))
         self.counters["matches_accepted"] += 1
         self.latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
+
+    def _publish_pose(self, scan: _PendingScan, match, world_T_base: np.ndarray) -> None:
+        """relocalisation, then the ranked hypotheses and their confidences."""
+        self.relocalisation_pub.publish(relocalisation_message(
+            scan.stamp, self.map_frame_id, world_T_base, match.covariance))
+        hypotheses = [relocalised_pose(h, self.localiser.reference_pose(h.reference_index),
+                                       self.extrinsic) for h in match.hypotheses]
+        self.candidates_pub.publish(candidates_message(scan.stamp, self.map_frame_id,
+                                                       hypotheses))
+        self.confidences_pub.publish(confidences_message(
+            [h.confidence for h in match.hypotheses]))
+        self.counters["poses_published"] += 1
+
+    def _answer(self, scan: _PendingScan, match, world_T_base: np.ndarray) -> str:
+        """The Trigger reply's message: the published pose as JSON."""
+        x, y = (float(v) for v in world_T_base[:2, 3])
+        yaw = float(np.arctan2(world_T_base[1, 0], world_T_base[0, 0]))
+        return json.dumps({"frame_id": self.map_frame_id, "stamp": scan.seconds, "x": x, "y": y,
+                           "yaw": yaw, "confidence": match.confidence,
+                           "covariance_xy_yaw": match.covariance.ravel().tolist()})
+
+    async def _on_relocalise(self, request: Trigger.Request, response: Trigger.Response
+                             ) -> Trigger.Response:
+        """Wait (without blocking the executor) for the next scan that passes verification."""
+        pending = _Request(time.perf_counter())
+        with self._wake:
+            self._requests.append(pending)
+        self.counters["requests"] += 1
+        timer = self.create_timer(self.request_timeout_s, lambda: self._expire(pending))
+        answer = await pending.answer
+        self.destroy_timer(timer)
+        response.success = answer is not None
+        response.message = answer if answer is not None else (
+            f"no scan passed verification within request_timeout_s = {self.request_timeout_s} s"
+            f" (last result: {self.last.reason if self.last else 'no scan searched'})")
+        if answer is None:
+            self.counters["requests_timed_out"] += 1
+        return response
+
+    def _expire(self, pending: _Request) -> None:
+        with self._wake:
+            if pending not in self._requests:
+                return
+            self._requests.remove(pending)
+        pending.answer.set_result(None)
 
     def _publish_diagnostics(self) -> None:
         counters = dict(self.counters)
@@ -278,6 +369,9 @@ class LocaliserNode(LidarNode):
         with self._wake:
             self._stopping = True
             self._wake.notify()
+            unanswered, self._requests = self._requests, []
+        for request in unanswered:
+            request.answer.set_result(None)
         self._worker.join(timeout=10.0)
         self.get_logger().info(
             f"localiser done: {self.counters['scans_received']} scans, "

@@ -17,10 +17,11 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, PoseWithCovarianceStamped
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimension
+from std_msgs.msg import (ColorRGBA, Float64MultiArray, Header, MultiArrayDimension,
+                          MultiArrayLayout)
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..live import LiveMatch, check_quaternion
@@ -118,6 +119,23 @@ def loop_closure_message(query_stamp: Time, reference_index: int, reference_stam
                                               stride=len(values))]
     message.data = values
     return message
+
+
+def candidates_message(stamp: Time, frame_id: str, world_T_bases: list[np.ndarray]) -> PoseArray:
+    """Ranked pose hypotheses, best first."""
+    message = PoseArray(header=Header(stamp=stamp, frame_id=frame_id))
+    for transform in world_T_bases:
+        pose = Pose()
+        set_pose(pose, transform)
+        message.poses.append(pose)
+    return message
+
+
+def confidences_message(confidences: list[float]) -> Float64MultiArray:
+    """The confidences of the hypotheses on ~/candidates, in the same order."""
+    return Float64MultiArray(layout=MultiArrayLayout(dim=[MultiArrayDimension(
+        label="confidence", size=len(confidences), stride=len(confidences))]),
+        data=[float(c) for c in confidences])
 
 
 def lio_sam_loop_message(query_stamp: Time, reference_stamp: float) -> Float64MultiArray:

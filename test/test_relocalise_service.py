@@ -1,0 +1,125 @@
+"""Relocalisation on request (nav2's way): the ~/relocalise Trigger service, one pose per
+request with AMCL's QoS, ranked candidates, the latched last pose, and the timeout."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from mf_lpr_ros.pose import planar
+from mf_lpr_ros.ros.localiser import LocaliserNode
+from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds
+from test_ros_nodes import errors, planar_of_message, synthetic_map  # noqa: F401 (fixture)
+
+# nav2 AMCL's /initialpose subscription: reliable, volatile.
+AMCL_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=QoSReliabilityPolicy.RELIABLE,
+                      durability=QoSDurabilityPolicy.VOLATILE)
+LATE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=QoSReliabilityPolicy.RELIABLE,
+                      durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ScanStream:
+    """Publishes the query scans round and round at ~10 Hz until stopped; remembers the truth
+    of each stamp."""
+
+    def __init__(self, publisher, queries, first_stamp: float = 500.0) -> None:
+        self.publisher, self.queries = publisher, queries
+        self.truth: dict[float, np.ndarray] = {}
+        self._stamp = first_stamp
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        index = 0
+        while not self._stop.wait(0.1):
+            points, pose = self.queries[index % len(self.queries)]
+            self.truth[round(self._stamp, 3)] = planar(pose)
+            self.publisher.publish(points_to_pointcloud2(points, seconds_to_stamp(self._stamp),
+                                                         "velodyne"))
+            self._stamp += 0.1
+            index += 1
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_):
+        self._stop.set()
+        self._thread.join()
+
+
+def _call(ros_graph, client, timeout_s: float = 30.0) -> Trigger.Response:
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    assert ros_graph.wait_for(future.done, timeout_s)
+    return future.result()
+
+
+def test_each_request_publishes_one_accurate_pose_with_amcls_qos(ros_graph, synthetic_map):
+    path, queries = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path))
+    assert node.publish_mode == "on_request"
+    poses: list = []
+    ros_graph.node.create_subscription(PoseWithCovarianceStamped, "relocalisation",
+                                       poses.append, AMCL_QOS)
+    candidates = ros_graph.collect(PoseArray, "/localiser/candidates")
+    confidences = ros_graph.collect(Float64MultiArray, "/localiser/candidate_confidences")
+    client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
+    publisher = ros_graph.publisher(PointCloud2, "points")
+    ros_graph.wait_for_subscribers(publisher)
+    with ScanStream(publisher, queries) as stream:
+        assert ros_graph.wait_for(lambda: node.counters["scans_searched"] >= 10)
+        assert poses == []                                   # nothing without a request
+        for request in range(3):
+            reply = _call(ros_graph, client)
+            assert reply.success, reply.message
+            answer = json.loads(reply.message)
+            assert ros_graph.wait_for(lambda: len(poses) == request + 1)
+            message = poses[-1]
+            assert message.header.frame_id == answer["frame_id"] == "map"
+            assert stamp_to_seconds(message.header.stamp) == pytest.approx(answer["stamp"])
+            truth = stream.truth[round(answer["stamp"], 3)]
+            translation, yaw = errors(planar_of_message(message), truth)
+            assert translation < 0.5 and yaw < 2.0
+            assert np.allclose([answer["x"], answer["y"]], planar_of_message(message)[:2])
+            covariance = np.array(message.pose.covariance).reshape(6, 6)
+            for row, col in ((0, 0), (1, 1), (0, 1), (1, 0), (5, 5)):   # slots 0, 7, 1, 6, 35
+                assert np.isfinite(covariance[row, col])
+            assert covariance[0, 0] > 0 and covariance[1, 1] > 0 and covariance[5, 5] > 0
+            searched = node.counters["scans_searched"]
+            assert ros_graph.wait_for(lambda: node.counters["scans_searched"] >= searched + 5)
+            assert len(poses) == request + 1                 # exactly once per request
+    assert ros_graph.wait_for(lambda: len(candidates) >= 3 and len(confidences) >= 3)
+    best = candidates[-1].poses[0]
+    assert np.allclose([best.position.x, best.position.y],
+                       planar_of_message(poses[-1])[:2])
+    ranked = confidences[-1].data
+    assert len(ranked) == len(candidates[-1].poses) >= 1
+    assert confidences[-1].layout.dim[0].label == "confidence"
+
+    # A subscriber that comes late still gets the last pose (transient local).
+    late: list = []
+    ros_graph.node.create_subscription(PoseWithCovarianceStamped, "relocalisation",
+                                       late.append, LATE_QOS)
+    assert ros_graph.wait_for(lambda: len(late) == 1, 10)
+    assert late[0].header.stamp == poses[-1].header.stamp
+
+
+def test_a_request_without_a_verified_match_times_out_with_a_reason(ros_graph, synthetic_map):
+    path, _ = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
+                           request_timeout_s=1.0)
+    client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
+    reply = _call(ros_graph, client)
+    assert not reply.success and "request_timeout_s" in reply.message
+    assert node.counters["requests_timed_out"] == 1
