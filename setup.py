@@ -31,6 +31,7 @@ setup(
             "mf-lpr = mf_lpr_ros.cli:main",
             "map_builder = mf_lpr_ros.ros.map_builder:main",
             "localiser = mf_lpr_ros.ros.localiser:main",
+            "managed_localiser = mf_lpr_ros.ros.localiser:managed_main",
             "pose_graph = mf_lpr_ros.ros.pose_graph:main",
         ],
     },

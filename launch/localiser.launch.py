@@ -4,8 +4,11 @@
     ros2 launch mf_lpr_ros localiser.launch.py mode:=loop_closure pose_source:=odom \\
         points:=/velodyne_points
     ros2 launch mf_lpr_ros localiser.launch.py map_path:=site.mfmap to_amcl:=true
+    ros2 service call /localiser/relocalise std_srvs/srv/Trigger
 
-preset picks config/<preset>.yaml; to_amcl:=true remaps relocalisation to /initialpose.
+preset picks config/<preset>.yaml; to_amcl:=true remaps relocalisation to /initialpose;
+publish_mode on_request publishes one pose per ~/relocalise call, continuous one per accepted
+scan. The managed (lifecycle) variant: localiser_managed.launch.py.
 """
 
 from launch import LaunchDescription
@@ -22,6 +25,7 @@ ARGUMENTS = {
     "points": ("points", "PointCloud2 topic"),
     "odom": ("odom", "Odometry topic (pose_source:=odom)"),
     "to_amcl": ("false", "publish relocalisation on /initialpose for nav2 AMCL"),
+    "publish_mode": ("on_request", "on_request (~/relocalise service) or continuous"),
 }
 
 
@@ -35,7 +39,8 @@ def _node(context):
         package="mf_lpr_ros", executable="localiser", name="localiser", output="screen",
         parameters=[f"{share}/config/{value['preset']}.yaml",
                     {"map_path": value["map_path"], "mode": value["mode"],
-                     "pose_source": value["pose_source"]}],
+                     "pose_source": value["pose_source"],
+                     "publish_mode": value["publish_mode"]}],
         remappings=remappings)]
 
 

@@ -49,11 +49,11 @@ class ParameterFault(ConfigError):
     """A node parameter is refused at start-up; the message names it."""
 
 
-class LidarNode(Node):
-    """A node fed by PointCloud2 scans and, optionally, a pose stream."""
+class LidarNodeMixin:
+    """What a node fed by PointCloud2 scans and, optionally, a pose stream needs, for plain
+    (rclpy Node) and managed (LifecycleNode) nodes alike: call init_lidar_state first."""
 
-    def __init__(self, name: str, **kwargs: Any) -> None:
-        super().__init__(name, **kwargs)
+    def init_lidar_state(self) -> None:
         self.counters: Counter[str] = Counter()
         self._last_logged: dict[str, float] = {}
         self._last_scan_stamp = -math.inf
@@ -123,7 +123,8 @@ class LidarNode(Node):
             "as bag replays; cannot connect to best-effort publishers)")
 
     def subscribe_poses(self, source: str, buffer: PoseBuffer,
-                        on_pose: Callable[[], None], reliable: bool = False) -> None:
+                        on_pose: Callable[[], None], reliable: bool = False):
+        """Subscribe to the pose source; returns the subscription."""
         topic, message_type = POSE_SOURCES[source]
 
         def received(message) -> None:
@@ -139,7 +140,7 @@ class LidarNode(Node):
             on_pose()
 
         self.pose_frame_id = ""
-        self.create_subscription(message_type, topic, received, sensor_qos(100, reliable))
+        return self.create_subscription(message_type, topic, received, sensor_qos(100, reliable))
 
     def decode_scan(self, message: PointCloud2, max_points: int, expected_frame: str,
                     future_tolerance_s: float) -> tuple[float, np.ndarray] | None:
@@ -180,6 +181,14 @@ class LidarNode(Node):
         if now - self._last_logged.get(key, -math.inf) >= _LOG_REPEAT_S:
             self._last_logged[key] = now
             self.get_logger().warning(text)
+
+
+class LidarNode(LidarNodeMixin, Node):
+    """A plain (unmanaged) node fed by PointCloud2 scans and, optionally, a pose stream."""
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        Node.__init__(self, name, **kwargs)
+        self.init_lidar_state()
 
 
 def run_node(factory: Callable[[], LidarNode], args: list[str] | None = None) -> int:

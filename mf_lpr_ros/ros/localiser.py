@@ -29,6 +29,8 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.node import Node
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
@@ -40,8 +42,8 @@ from ..config import Config
 from ..descriptor import InvalidCloudError
 from ..live import (InvalidPoseError, LiveMatch, Localiser, PoseBuffer, ScanPoseSynchroniser,
                     relative_transform, relocalised_pose)
-from ..map_store import MapParameterMismatch, ReferenceMap
-from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
+from ..map_store import MapFileError, MapParameterMismatch, ReferenceMap
+from .common import POSE_SOURCES, LidarNodeMixin, ParameterFault, run_node, sensor_qos
 from .messages import (candidates_message, confidences_message, diagnostics_message,
                        lio_sam_loop_message, loop_closure_message, match_markers,
                        relocalisation_message)
@@ -73,9 +75,29 @@ class _Request:
     answer: Future = field(default_factory=Future)
 
 
-class LocaliserNode(LidarNode):
-    def __init__(self, node_name: str = "localiser", **kwargs) -> None:
-        super().__init__(node_name, **kwargs)
+@dataclass
+class _Settings:
+    """The localiser's node parameters, read once at construction."""
+
+    config: Config
+    explicit: dict
+    map_path: str
+    pose_source: str
+    exclude_recent_s: float
+    min_score: float
+    max_pose_gap_s: float
+    diagnostics_period_s: float
+    map_frame_id: str
+    reliable: bool
+
+
+class LocaliserLogic(LidarNodeMixin):
+    """The localiser on any rclpy node class. Its life cycle, in the order a managed node goes
+    through it: declare_settings (parameters; a bad one stops start-up), configure (the map,
+    the search, publishers, the service, the search thread), activate (subscriptions,
+    diagnostics), deactivate (they stop), cleanup (everything configure made is freed)."""
+
+    def declare_settings(self) -> None:
         config, explicit = self.declare_config()
         self.mode = self.typed_parameter("mode", "relocalise", "relocalise or loop_closure",
                                          lambda v: v in Localiser.MODES,
@@ -128,57 +150,69 @@ class LocaliserNode(LidarNode):
             raise ParameterFault("parameter loop_closure_format lio_sam needs mode loop_closure: "
                                  "LIO-SAM maps both stamps to its own keyframes, so the "
                                  "reference must come from the same session")
-
         if self.mode == "loop_closure" and pose_source == "none":
             raise ParameterFault("parameter pose_source must name a pose stream in loop_closure "
                                  "mode (the map grows from the robot's posed scans)")
-        reference_map = self._open_map(map_path, config, explicit)
-        config = Config(reference_map.params, config.search, config.spacing_m)
-        if config.descriptor.level and pose_source == "none":
-            raise ParameterFault("parameter pose_source must name a pose stream: "
-                                 "descriptor.level needs each scan's roll and pitch")
-        try:
-            self.localiser = Localiser(reference_map, config, mode=self.mode,
-                                       exclude_recent_s=exclude_recent_s, min_score=min_score,
-                                       odometry_known=pose_source != "none")
-        except ValueError as error:
-            raise ParameterFault(str(error)) from None
-        self.map_frame_id = map_frame_id or reference_map.frame_id or "map"
-
-        self.synchroniser = None
-        if pose_source != "none":
-            self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
-            self.synchroniser = ScanPoseSynchroniser(self.poses, self.extrinsic)
-            self.subscribe_poses(pose_source, self.poses, self._pair, reliable)
-        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(5, reliable))
-        self.relocalisation_pub = self.create_publisher(PoseWithCovarianceStamped,
-                                                        "relocalisation", LATCHED_POSE_QOS)
-        self.candidates_pub = self.create_publisher(PoseArray, "~/candidates", 10)
-        self.confidences_pub = self.create_publisher(Float64MultiArray,
-                                                     "~/candidate_confidences", 10)
-        self._requests: list[_Request] = []
-        # A group of its own: while a request awaits its scan, the executor keeps running the
-        # scan callbacks (the default group would be held by the awaiting handler).
-        self.create_service(Trigger, "~/relocalise", self._on_relocalise,
-                            callback_group=MutuallyExclusiveCallbackGroup())
-        self.loop_closure_pub = self.create_publisher(Float64MultiArray, "loop_closure", 100) \
-            if "mf_lpr" in self.loop_closure_formats else None
-        # Reliable and keep-last: compatible with LIO-SAM's best-effort depth-1 subscriber and
-        # with the reliable ones of its forks.
-        self.lio_sam_pub = self.create_publisher(Float64MultiArray, LIO_SAM_TOPIC, 10) \
-            if "lio_sam" in self.loop_closure_formats else None
-        self.markers_pub = self.create_publisher(MarkerArray, "markers", 10)
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "diagnostics", 10)
-        self.create_timer(diagnostics_period_s, self._publish_diagnostics)
-
+        self.settings = _Settings(config, explicit, map_path, pose_source, exclude_recent_s,
+                                  min_score, max_pose_gap_s, diagnostics_period_s, map_frame_id,
+                                  reliable)
         # Scan arrival to published pose (accepted matches), and to any result.
         self.latencies_ms: deque[float] = deque(maxlen=10_000)
         self.result_latencies_ms: deque[float] = deque(maxlen=10_000)
         self.searched_stamps: deque[float] = deque(maxlen=100_000)
         self.last: LiveMatch | None = None
+        self.localiser: Localiser | None = None
+        self._inputs: list = []
+        self._diagnostics_timer = None
+        self._wake = threading.Condition()
+
+    def configure(self, create_publisher) -> None:
+        """Load the map and build the search; create_publisher is the node's publisher factory
+        (create_lifecycle_publisher on a managed node)."""
+        settings = self.settings
+        reference_map = self._open_map(settings.map_path, settings.config, settings.explicit)
+        config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
+        if config.descriptor.level and settings.pose_source == "none":
+            raise ParameterFault("parameter pose_source must name a pose stream: "
+                                 "descriptor.level needs each scan's roll and pitch")
+        try:
+            self.localiser = Localiser(reference_map, config, mode=self.mode,
+                                       exclude_recent_s=settings.exclude_recent_s,
+                                       min_score=settings.min_score,
+                                       odometry_known=settings.pose_source != "none")
+        except ValueError as error:
+            raise ParameterFault(str(error)) from None
+        self.map_frame_id = settings.map_frame_id or reference_map.frame_id or "map"
+        self.synchroniser = None
+        if settings.pose_source != "none":
+            self.poses = PoseBuffer(max_gap_s=settings.max_pose_gap_s)
+            self.synchroniser = ScanPoseSynchroniser(self.poses, self.extrinsic)
+        self._publishers = []
+
+        def publisher(message_type, topic, qos):
+            created = create_publisher(message_type, topic, qos)
+            self._publishers.append(created)
+            return created
+
+        self.relocalisation_pub = publisher(PoseWithCovarianceStamped, "relocalisation",
+                                            LATCHED_POSE_QOS)
+        self.candidates_pub = publisher(PoseArray, "~/candidates", 10)
+        self.confidences_pub = publisher(Float64MultiArray, "~/candidate_confidences", 10)
+        self.loop_closure_pub = publisher(Float64MultiArray, "loop_closure", 100) \
+            if "mf_lpr" in self.loop_closure_formats else None
+        # Reliable and keep-last: compatible with LIO-SAM's best-effort depth-1 subscriber and
+        # with the reliable ones of its forks.
+        self.lio_sam_pub = publisher(Float64MultiArray, LIO_SAM_TOPIC, 10) \
+            if "lio_sam" in self.loop_closure_formats else None
+        self.markers_pub = publisher(MarkerArray, "markers", 10)
+        self.diagnostics_pub = publisher(DiagnosticArray, "diagnostics", 10)
+        self._requests: list[_Request] = []
+        # A group of its own: while a request awaits its scan, the executor keeps running the
+        # scan callbacks (the default group would be held by the awaiting handler).
+        self._service = self.create_service(Trigger, "~/relocalise", self._on_relocalise,
+                                            callback_group=MutuallyExclusiveCallbackGroup())
         self._scan_index = 0
         self._slot: _PendingScan | None = None
-        self._wake = threading.Condition()
         self._stopping = False
         self._busy = False
         self._worker = threading.Thread(target=self._work, name="mf_lpr_search", daemon=True)
@@ -192,6 +226,44 @@ class LocaliserNode(LidarNode):
             self.get_logger().warning(
                 "odometry consistency is off: no pose_source gives the scans' odometry, so "
                 "matches are verified by confidence, distinctiveness and ICP only")
+
+    def activate(self) -> None:
+        """Subscribe to the scans (and poses) and start the diagnostics."""
+        settings = self.settings
+        if self.synchroniser is not None:
+            self._inputs.append(self.subscribe_poses(settings.pose_source, self.poses,
+                                                     self._pair, settings.reliable))
+        self._inputs.append(self.create_subscription(PointCloud2, "points", self._on_scan,
+                                                     sensor_qos(5, settings.reliable)))
+        self._diagnostics_timer = self.create_timer(settings.diagnostics_period_s,
+                                                    self._publish_diagnostics)
+
+    def deactivate(self) -> None:
+        """Stop listening; the map and the search stay."""
+        for subscription in self._inputs:
+            self.destroy_subscription(subscription)
+        self._inputs = []
+        if self._diagnostics_timer is not None:
+            self.destroy_timer(self._diagnostics_timer)
+            self._diagnostics_timer = None
+
+    def cleanup(self) -> None:
+        """Stop the search thread, answer waiting requests with a failure, free the map."""
+        if self.localiser is None:
+            return
+        self.deactivate()
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+            unanswered, self._requests = self._requests, []
+        for request in unanswered:
+            request.answer.set_result(None)
+        self._worker.join(timeout=10.0)
+        self.destroy_service(self._service)
+        for created in self._publishers:
+            self.destroy_publisher(created)
+        self._publishers = []
+        self.localiser = None
 
     def _open_map(self, map_path: str, config: Config, explicit: dict) -> ReferenceMap:
         if self.mode == "loop_closure":
@@ -239,6 +311,8 @@ class LocaliserNode(LidarNode):
 
     def is_idle(self) -> bool:
         """No scan waiting for its pose, for the search, or being searched."""
+        if self.localiser is None:
+            return True
         with self._wake:
             waiting = self.synchroniser.pending if self.synchroniser is not None else 0
             return self._slot is None and not self._busy and waiting == 0
@@ -366,21 +440,67 @@ class LocaliserNode(LidarNode):
             self.get_clock().now().to_msg(), self.get_name(), counters, self.last, warn))
 
     def finish(self) -> None:
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-            unanswered, self._requests = self._requests, []
-        for request in unanswered:
-            request.answer.set_result(None)
-        self._worker.join(timeout=10.0)
+        if self.localiser is not None:
+            self.cleanup()
         self.get_logger().info(
             f"localiser done: {self.counters['scans_received']} scans, "
             f"{self.counters['scans_searched']} searched, {self.counters['scans_dropped']} "
             f"dropped, {self.counters['matches_accepted']} accepted")
 
 
+class LocaliserNode(LocaliserLogic, Node):
+    """The plain localiser: configured and active from construction."""
+
+    def __init__(self, node_name: str = "localiser", **kwargs) -> None:
+        Node.__init__(self, node_name, **kwargs)
+        self.init_lidar_state()
+        self.declare_settings()
+        self.configure(self.create_publisher)
+        self.activate()
+
+
+class ManagedLocaliserNode(LocaliserLogic, LifecycleNode):
+    """The localiser as a managed (lifecycle) node, for nav2's lifecycle manager: parameters at
+    construction, the map on configure, topics on activate, paused on deactivate, freed on
+    cleanup. A failing configure (a missing or mismatched map) leaves it unconfigured."""
+
+    def __init__(self, node_name: str = "localiser", **kwargs) -> None:
+        LifecycleNode.__init__(self, node_name, **kwargs)
+        self.init_lidar_state()
+        self.declare_settings()
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self.configure(self.create_lifecycle_publisher)
+        except (ParameterFault, MapFileError, OSError, ValueError) as error:
+            self.get_logger().error(f"configure failed: {type(error).__name__}: {error}")
+            self.localiser = None
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.activate()
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.deactivate()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+
 def main(args: list[str] | None = None) -> int:
     return run_node(LocaliserNode, args)
+
+
+def managed_main(args: list[str] | None = None) -> int:
+    return run_node(ManagedLocaliserNode, args)
 
 
 if __name__ == "__main__":
