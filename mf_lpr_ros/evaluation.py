@@ -17,8 +17,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
+from .progress import progress_bar
 from .config import Config
 from .datasets import Scan, Sequence
 from .datasets.base import nearest_keys
@@ -288,16 +288,17 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
         query_descriptors[scan.index] = (descriptor, (time.perf_counter() - started) * 1e3)
 
     to_describe = sorted(set(wanted_refs) | (wanted_queries if same_sequence else set()))
-    for scan in tqdm(reference.iter_scans(to_describe), total=len(to_describe),
-                     desc=f"{method.name}: describe", disable=not progress, unit="scan"):
+    for scan in progress_bar(reference.iter_scans(to_describe), total=len(to_describe),
+                             desc=f"{method.name}: describe", enabled=progress, unit="scan"):
         if scan.index in wanted_refs:
             ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
         if same_sequence and scan.index in wanted_queries:
             describe_query(scan)
     if not same_sequence:
-        for scan in tqdm(query_seq.iter_scans(selection.queries), total=len(selection.queries),
-                         desc=f"{method.name}: describe queries", disable=not progress,
-                         unit="scan"):
+        for scan in progress_bar(query_seq.iter_scans(selection.queries),
+                                 total=len(selection.queries),
+                                 desc=f"{method.name}: describe queries", enabled=progress,
+                                 unit="scan"):
             describe_query(scan)
     method.build(ref_descriptors, reference.poses[selection.references],
                  reference.stamps[selection.references])
@@ -305,9 +306,10 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     truth_poses = query_seq.poses if truth_poses is None else truth_poses
     ref_planar = planar((truth_poses if same_sequence else reference.poses)[selection.references])
     records = []
-    for query_index, n_active in tqdm(zip(selection.queries, selection.n_active),
-                                      total=len(selection.queries), desc=f"{method.name}: search",
-                                      disable=not progress, unit="query"):
+    for query_index, n_active in progress_bar(zip(selection.queries, selection.n_active),
+                                              total=len(selection.queries),
+                                              desc=f"{method.name}: search", enabled=progress,
+                                              unit="query"):
         descriptor, descriptor_ms = query_descriptors[int(query_index)]
         retrieval = method.query(descriptor, int(n_active), planar(query_seq.poses[query_index]))
         truth = planar(truth_poses[query_index])

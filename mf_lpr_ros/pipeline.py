@@ -7,8 +7,8 @@ from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
-from tqdm import tqdm
 
+from .progress import progress_bar
 from .config import Config, DescriptorParams, SearchParams
 from .datasets import Scan, Sequence
 from .descriptor import describe_density_image, describe_points, stamp_seed_key
@@ -81,8 +81,8 @@ def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
     indices = select_references(sequence.poses[:, :3, 3], config.spacing_m, valid)
     reference_map = ReferenceMap(config.descriptor, sensor_frame_id=getattr(sequence, "frame_id", ""),
                                  metadata={"source": sequence.name, "spacing_m": config.spacing_m})
-    for scan in tqdm(sequence.iter_scans(indices), total=len(indices), desc="build map",
-                     disable=not progress, unit="scan"):
+    for scan in progress_bar(sequence.iter_scans(indices), total=len(indices), desc="build map",
+                             enabled=progress, unit="scan"):
         occupancy = describe_scan(scan, config.descriptor, reference=True)
         cloud = prepared_points(scan, config.descriptor) if keep_clouds else None
         reference_map.append(occupancy, scan.pose, scan.stamp, scan.index, cloud)
@@ -126,8 +126,8 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
     verifier = MatchVerifier(search, odometry_known=posed)
     outcomes = []
     selected = list(range(len(sequence))) if indices is None else list(indices)
-    for scan in tqdm(sequence.iter_scans(selected), total=len(selected), desc="localise",
-                     disable=not progress, unit="scan"):
+    for scan in progress_bar(sequence.iter_scans(selected), total=len(selected), desc="localise",
+                             enabled=progress, unit="scan"):
         started = time.perf_counter()
         occupancy = describe_scan(scan, reference_map.params, reference=False)
         descriptor_ms = (time.perf_counter() - started) * 1e3

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from .progress import progress_bar
 from .pose import pose_matrix, quaternion_from_yaw
 
 
@@ -324,8 +324,8 @@ def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndar
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         clouds = writer.add_connection(cloud_topic, cloud_type, typestore=store)
         odometry = writer.add_connection(odom_topic, odom_type, typestore=store)
-        for index, (x, y, yaw) in enumerate(tqdm(trajectory, desc=f"simulate {path.name}",
-                                                 unit="scan", disable=not progress)):
+        for index, (x, y, yaw) in enumerate(progress_bar(trajectory, desc=f"simulate {path.name}",
+                                                         unit="scan", enabled=progress)):
             pose = pose_matrix(np.array([x, y, sensor.mount_height_m]), quaternion_from_yaw(yaw))
             points = cast(scene, sensor, pose, rng)
             stamp_ns = int(round((start_s + index / rate_hz) * 1e9))

@@ -49,7 +49,8 @@ class DriftModel:
         steps = relative_planar(truth[:-1], truth[1:])
         length = np.hypot(steps[:, 0], steps[:, 1])
         steps[:, :2] *= 1.0 + self.scale_error
-        steps[:, :2] += rng.normal(size=(len(steps), 2)) * (self.translation_noise * length)[:, None]
+        noise_m = self.translation_noise * length
+        steps[:, :2] += rng.normal(size=(len(steps), 2)) * noise_m[:, None]
         steps[:, 2] += np.radians(self.yaw_bias_deg_per_m * length
                                   + rng.normal(size=len(steps)) * self.yaw_noise_deg_per_m * length)
         drifted = [truth[0]]

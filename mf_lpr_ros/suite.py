@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from .progress import progress_bar
 from .config import preset
 from .datasets import DatasetError, open_source
 from .evaluation import METHODS, PairResult, Protocol, evaluate_pair
@@ -186,7 +186,7 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
     (out / "pairs").mkdir(parents=True, exist_ok=True)
     results: dict[tuple[str, str], PairResult] = {}
     jobs = [(pair, method) for pair in pairs for method in methods]
-    bar = tqdm(jobs, desc=suite.name, disable=not progress, unit="run")
+    bar = progress_bar(jobs, desc=suite.name, enabled=progress, unit="run")
     for pair, method in bar:
         bar.set_postfix_str(f"{pair.name} {method}")
         path = out / "pairs" / f"{pair.name}__{method}.json"

@@ -38,6 +38,8 @@ if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msg
     ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs \
     ros-jazzy-std-srvs ros-jazzy-lifecycle-msgs
 fi
+# colcon builds and tests the package as on a ROS 2 workspace (test_ros_processes.py builds it).
+quiet $pip install -q colcon-common-extensions || echo "setup: colcon not installed; the colcon build test will be skipped"
 # GTSAM: the pose graph of slam-eval and the pose_graph node (optional; both name it when missing).
 quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and pose_graph will be unavailable"
 quiet $pip install -q --no-deps -e .

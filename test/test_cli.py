@@ -127,3 +127,23 @@ def test_compare_runs_both_methods_on_one_protocol(traversals, tmp_path, capsys)
     assert ours["recall_at_1_corrected"] >= baseline["recall_at_1_corrected"]
     table = capsys.readouterr().out
     assert "| MF-LPR (ours) |" in table and "| Scan Context |" in table
+
+
+def test_progress_is_one_line_per_loop_in_a_log_and_a_bar_on_request(traversals, tmp_path,
+                                                                       capsys, monkeypatch):
+    # pytest's captured stderr is not a terminal: what a log file or CI sees.
+    assert main(["build-map", str(traversals / "first"), "--out", str(tmp_path / "a.mfmap"),
+                 "--preset", "kitti"]) == 0
+    logged = capsys.readouterr().err
+    assert "\r" not in logged
+    lines = [line for line in logged.splitlines() if line.startswith("build map: ")]
+    references = len(ReferenceMap.load(tmp_path / "a.mfmap"))
+    assert lines == [lines[0]] and lines[0].startswith(f"build map: {references} scan in ")
+    monkeypatch.setenv("MF_LPR_PROGRESS", "bar")
+    assert main(["build-map", str(traversals / "first"), "--out", str(tmp_path / "b.mfmap"),
+                 "--preset", "kitti"]) == 0
+    assert "\r" in capsys.readouterr().err
+    monkeypatch.delenv("MF_LPR_PROGRESS")
+    assert main(["build-map", str(traversals / "first"), "--out", str(tmp_path / "c.mfmap"),
+                 "--preset", "kitti", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""

@@ -14,8 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from sensor_msgs.msg import PointCloud2
 
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.live import MapBuilder, PairedScan
 from mf_lpr_ros.map_store import ReferenceMap
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.synthetic import route, scan_world
@@ -94,32 +97,78 @@ def test_localiser_process_refuses_bad_start_up_with_status_2(arguments, name):
     assert name in output
 
 
-def test_colcon_style_install_puts_files_where_ros2_run_looks(tmp_path):
-    """ament_python under colcon runs `setup.py install` with a prefix; do the same."""
-    source = tmp_path / "src"
+def _colcon_environment(prefix: Path) -> dict[str, str]:
+    """The environment colcon's package hooks describe (share/<pkg>/package.dsv and the .dsv
+    files it names), applied without sourcing any shell script."""
+    environment = dict(os.environ)
+    share = prefix / "share" / "mf_lpr_ros"
+    for line in (share / "package.dsv").read_text().splitlines():
+        kind, _, hook = line.partition(";")
+        if kind != "source" or not hook.endswith(".dsv"):
+            continue
+        for entry in (prefix / hook).read_text().splitlines():
+            action, variable, value = entry.split(";", 2)
+            assert action == "prepend-non-duplicate", entry
+            path = str(prefix / value) if value else str(prefix)
+            environment[variable] = os.pathsep.join(
+                [path, *[p for p in environment.get(variable, "").split(os.pathsep) if p]])
+    return environment
+
+
+@pytest.mark.skipif(not (BIN / "colcon").exists(),
+                    reason="colcon not installed (make setup installs colcon-common-extensions)")
+def test_colcon_build_installs_what_ros2_run_starts(ros_graph, world, tmp_path):
+    source = tmp_path / "ws" / "src" / "mf_lpr_ros"
     shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
         ".venv", ".git", "build", "install", "log", "*.egg-info", "__pycache__", "out"))
-    prefix = tmp_path / "install"
-    result = subprocess.run(
-        [sys.executable, "setup.py", "-q", "build", "--build-base", str(tmp_path / "build"),
-         "install", "--prefix", str(prefix), "--single-version-externally-managed",
-         "--record", str(tmp_path / "record.txt")],
-        cwd=source, capture_output=True, text=True)
-    assert result.returncode == 0, result.stderr
-    for executable in ("map_builder", "localiser", "mf-lpr"):
-        path = prefix / "lib" / "mf_lpr_ros" / executable
-        assert path.is_file() and os.access(path, os.X_OK), f"{path} missing"
-    share = prefix / "share" / "mf_lpr_ros"
-    assert (share / "package.xml").is_file()
-    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "mf_lpr_ros").is_file()
+    built = subprocess.run([str(BIN / "colcon"), "build", "--packages-select", "mf_lpr_ros"],
+                           cwd=tmp_path / "ws", capture_output=True, text=True)
+    assert built.returncode == 0, built.stdout + built.stderr
+    prefix = tmp_path / "ws" / "install" / "mf_lpr_ros"
+    environment = _colcon_environment(prefix)
+
+    # What ros2 run and ros2 launch resolve: the share folder through the ament index, and the
+    # package imported from the install, not from this checkout.
+    found = subprocess.run(
+        [sys.executable, "-c", "import mf_lpr_ros; from ament_index_python.packages import "
+         "get_package_share_directory as share; print(share('mf_lpr_ros')); "
+         "print(mf_lpr_ros.__file__)"],
+        capture_output=True, text=True, env=environment, cwd=tmp_path)
+    assert found.returncode == 0, found.stderr
+    share_directory, module = found.stdout.split()
+    assert Path(share_directory) == prefix / "share" / "mf_lpr_ros"
+    assert Path(module).is_relative_to(prefix)
+    share = Path(share_directory)
     assert {p.name for p in (share / "launch").glob("*.launch.py")} == {
-        "map_builder.launch.py", "localiser.launch.py"}
+        "map_builder.launch.py", "localiser.launch.py", "localiser_managed.launch.py"}
     assert {p.stem for p in (share / "config").glob("*.yaml")} >= {"default", "kitti", "handheld"}
-    site = next(prefix.glob("lib/python3*/site-packages"))
-    environment = {**os.environ, "PYTHONPATH": str(site)}
-    help_text = subprocess.run([str(prefix / "lib" / "mf_lpr_ros" / "mf-lpr"), "--help"],
-                               capture_output=True, text=True, env=environment, cwd=tmp_path)
-    assert help_text.returncode == 0 and "replay" in help_text.stdout
+
+    # The installed localiser (lib/mf_lpr_ros/localiser, what `ros2 run` executes) answers.
+    rng = np.random.default_rng(3)
+    map_path = tmp_path / "site.mfmap"
+    builder = MapBuilder(preset("kitti"), map_path)
+    for index, (x, y, yaw) in enumerate(route(30)):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        builder.offer(PairedScan(index, float(index), points, pose))
+    builder.save()
+    process = subprocess.Popen(
+        [str(prefix / "lib" / "mf_lpr_ros" / "localiser"), "--ros-args", "-p", "preset:=kitti",
+         "-p", f"map_path:={map_path}", "-p", "publish_mode:=continuous"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=environment)
+    try:
+        poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+        clouds = ros_graph.publisher(PointCloud2, "points")
+        ros_graph.wait_for_subscribers(clouds, timeout_s=60)
+        x, y, yaw = route(30)[7]
+        points, _ = scan_world(world, x + 0.4, y - 0.3, yaw + 0.1, rng)
+        clouds.publish(points_to_pointcloud2(points, seconds_to_stamp(500.0), "velodyne"))
+        assert ros_graph.wait_for(lambda: len(poses) == 1, 30)
+        position = poses[0].pose.pose.position
+        assert np.hypot(position.x - x - 0.4, position.y - y + 0.3) < 0.5
+    finally:
+        process.send_signal(signal.SIGINT)
+        output = process.communicate(timeout=30)[0]
+    assert process.returncode == 0, output
 
 
 def test_launch_files_name_installed_executables_and_presets():
@@ -127,5 +176,5 @@ def test_launch_files_name_installed_executables_and_presets():
         text = launch_file.read_text()
         compile(text, str(launch_file), "exec")
         executable = re.search(r'executable="(\w+)"', text).group(1)
-        assert executable in {"map_builder", "localiser"}
+        assert executable in {"map_builder", "localiser", "managed_localiser"}
         assert "config/{value['preset']}.yaml" in text

@@ -160,3 +160,51 @@ def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
     keyframes = [stamp_index[round(stamp_to_seconds(p.header.stamp), 3)] for p in paths[-1].poses]
     path = np.array([[p.pose.position.x, p.pose.position.y, 0.0] for p in paths[-1].poses])
     assert absolute_trajectory_error(path, truth[keyframes]) < 0.1
+
+
+def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, tmp_path):
+    """nav2's way on real scans: each ~/relocalise call answers with the first verified scan
+    after it, within 0.5 m and 2 degrees, and publishes that pose once."""
+    import json
+
+    from std_srvs.srv import Trigger
+
+    bag, sequence = balm_bag
+    half = len(sequence) // 2
+    map_path = tmp_path / "first_half.mfmap"
+    builder = MapBuilder(CONFIG, map_path, keep_clouds=True)
+    for scan in sequence.iter_scans(range(half)):
+        builder.offer(PairedScan(scan.index, scan.stamp, scan.points, scan.pose))
+    builder.save()
+    node = ros_graph.start(LocaliserNode, preset="handheld", map_path=str(map_path),
+                           pose_source="odom")
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    assert client.wait_for_service(timeout_sec=10)
+    mapped = ReferenceMap.load(map_path).poses[:, :2, 3]
+    covered = [scan for scan in sequence.iter_scans(range(half, len(sequence)))
+               if np.linalg.norm(mapped - scan.pose[:2, 3], axis=1).min() <= 2.0]
+    truth = {round(scan.stamp, 3): planar(scan.pose) for scan in covered}
+    stream = iter(covered * 3)
+    for request in range(3):
+        future = client.call_async(Trigger.Request())
+        while not future.done():
+            scan = next(stream)
+            stamp = seconds_to_stamp(scan.stamp + 1000.0 * request)
+            truth[round(scan.stamp + 1000.0 * request, 3)] = planar(scan.pose)
+            odometry.publish(odometry_message(stamp, "map", "velodyne", scan.pose))
+            clouds.publish(points_to_pointcloud2(scan.points, stamp, "velodyne"))
+            searched = node.counters["scans_searched"]
+            ros_graph.wait_for(lambda: node.counters["scans_searched"] > searched
+                               or future.done(), 10)
+        reply = future.result()
+        assert reply.success, reply.message
+        answer = json.loads(reply.message)
+        translation, yaw = errors(np.array([answer["x"], answer["y"], answer["yaw"]]),
+                                  truth[round(answer["stamp"], 3)])
+        assert translation < 0.5 and yaw < 2.0
+    assert ros_graph.wait_for(lambda: len(poses) == 3) and node.counters["poses_published"] == 3

@@ -434,7 +434,8 @@ class LocaliserLogic(LidarNodeMixin):
         counters["references"] = self.localiser.reference_count
         counters["references_rejected"] = self.localiser.rejected_references
         warn = "; ".join(text for text in (
-            "scans dropped: search slower than the sensor" if self.counters["scans_dropped"] else "",
+            "scans dropped: search slower than the sensor" if self.counters["scans_dropped"]
+            else "",
             self.localiser.last_reference_error) if text)
         self.diagnostics_pub.publish(diagnostics_message(
             self.get_clock().now().to_msg(), self.get_name(), counters, self.last, warn))

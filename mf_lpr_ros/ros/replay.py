@@ -14,8 +14,8 @@ from pathlib import Path
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
-from tqdm import tqdm
 
+from ..progress import progress_bar
 from ..datasets.base import DatasetError
 from ..datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
 
@@ -88,9 +88,9 @@ def replay_bag(path: str | Path, *, topics: list[str] | None = None, rate: float
             connections = [c for c in chosen if c.topic in publishers]
             total = sum(c.msgcount for c in connections)
             started, first = time.monotonic(), None
-            for connection, timestamp, raw in tqdm(reader.messages(connections=connections),
-                                                   total=total, desc="replay", unit="msg",
-                                                   disable=not progress):
+            for connection, timestamp, raw in progress_bar(reader.messages(connections=connections),
+                                                           total=total, desc="replay", unit="msg",
+                                                           enabled=progress):
                 first = timestamp if first is None else first
                 delay = (timestamp - first) * 1e-9 / rate - (time.monotonic() - started)
                 if delay > 0:
