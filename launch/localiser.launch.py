@@ -25,7 +25,7 @@ ARGUMENTS = {
     "points": ("points", "PointCloud2 topic"),
     "odom": ("odom", "Odometry topic (pose_source:=odom)"),
     "to_amcl": ("false", "publish relocalisation on /initialpose for nav2 AMCL"),
-    "publish_mode": ("on_request", "on_request (~/relocalise service) or continuous"),
+    "publish_mode": ("auto", "on_request (~/relocalise service), continuous, or auto (by mode)"),
 }
 
 

@@ -10,10 +10,11 @@
 Only the newest scan is searched: a scan arriving while the search is busy replaces the waiting
 one (counted as dropped), so a slow search never builds a backlog.
 
-publish_mode on_request (default): `relocalisation` is published once per call of the
-~/relocalise Trigger service, with the first scan after the call whose match passes
-verification, and the pose is returned in the reply; continuous: every accepted scan.
-Loop closures are published for every accepted scan in either mode.
+publish_mode on_request (the default in relocalise mode): `relocalisation` is published once
+per call of the ~/relocalise Trigger service, with the first scan after the call whose match
+passes verification, and the pose is returned in the reply; continuous (the default in
+loop_closure mode): every accepted scan. Loop closures are published for every accepted scan
+in either mode.
 """
 
 from __future__ import annotations
@@ -131,10 +132,11 @@ class LocaliserLogic(LidarNodeMixin):
         self.future_tolerance_s = self.typed_parameter(
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
-        self.publish_mode = self.typed_parameter(
-            "publish_mode", "on_request", "on_request: publish relocalisation once per "
-            "~/relocalise call (nav2); continuous: for every accepted scan",
-            lambda v: v in PUBLISH_MODES, f"one of {PUBLISH_MODES}")
+        publish_mode = self.typed_parameter(
+            "publish_mode", "auto", "on_request: publish relocalisation once per "
+            "~/relocalise call (nav2); continuous: for every accepted scan; auto: on_request "
+            "in relocalise mode, continuous in loop_closure mode",
+            lambda v: v in ("auto", *PUBLISH_MODES), f"one of {('auto', *PUBLISH_MODES)}")
         self.request_timeout_s = self.typed_parameter(
             "request_timeout_s", 10.0, "a ~/relocalise call fails when no scan passes "
             "verification within this many seconds", lambda v: v > 0, "> 0")
@@ -146,6 +148,8 @@ class LocaliserLogic(LidarNodeMixin):
             f"a non-empty list of {LOOP_CLOSURE_FORMATS}"))
         reliable = self.declare_reliable_qos()
         self.freeze_parameters()
+        self.publish_mode = publish_mode if publish_mode != "auto" else \
+            "continuous" if self.mode == "loop_closure" else "on_request"
         if "lio_sam" in self.loop_closure_formats and self.mode != "loop_closure":
             raise ParameterFault("parameter loop_closure_format lio_sam needs mode loop_closure: "
                                  "LIO-SAM maps both stamps to its own keyframes, so the "
