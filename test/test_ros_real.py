@@ -75,14 +75,23 @@ def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag,
     assert len(closed & revisited) >= 0.5 * len(revisited)
 
 
-def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_bag, tmp_path):
-    bag, sequence = balm_bag
+@pytest.fixture(scope="module")
+def first_half_map(balm_bag, tmp_path_factory):
+    """A map (with clouds) of the bag's first half, and the index of its second half's start."""
+    _, sequence = balm_bag
     half = len(sequence) // 2
-    map_path = tmp_path / "first_half.mfmap"
+    map_path = tmp_path_factory.mktemp("balm") / "first_half.mfmap"
     builder = MapBuilder(CONFIG, map_path, keep_clouds=True)
     for scan in sequence.iter_scans(range(half)):
         builder.offer(PairedScan(scan.index, scan.stamp, scan.points, scan.pose))
     builder.save()
+    return map_path, half
+
+
+def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_bag,
+                                                              first_half_map):
+    bag, sequence = balm_bag
+    map_path, half = first_half_map
 
     node = ros_graph.start(LocaliserNode, preset="handheld", map_path=str(map_path),
                            pose_source="odom", publish_mode="continuous")
@@ -162,7 +171,7 @@ def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
     assert absolute_trajectory_error(path, truth[keyframes]) < 0.1
 
 
-def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, tmp_path):
+def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, first_half_map):
     """nav2's way on real scans: each ~/relocalise call answers with the first verified scan
     after it, within 0.5 m and 2 degrees, and publishes that pose once."""
     import json
@@ -170,12 +179,7 @@ def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, tmp_path):
     from std_srvs.srv import Trigger
 
     bag, sequence = balm_bag
-    half = len(sequence) // 2
-    map_path = tmp_path / "first_half.mfmap"
-    builder = MapBuilder(CONFIG, map_path, keep_clouds=True)
-    for scan in sequence.iter_scans(range(half)):
-        builder.offer(PairedScan(scan.index, scan.stamp, scan.points, scan.pose))
-    builder.save()
+    map_path, half = first_half_map
     node = ros_graph.start(LocaliserNode, preset="handheld", map_path=str(map_path),
                            pose_source="odom")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
