@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mf_lpr_ros.synthetic import make_world
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.live import MapBuilder, PairedScan
+from mf_lpr_ros.synthetic import make_world, route, scan_world
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -47,3 +49,19 @@ def world():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="module")
+def synthetic_map(tmp_path_factory, world):
+    """A kitti-preset map of one traversal of the generated world, and scans (points, pose) of
+    a second traversal (1 m aside, reversed)."""
+    rng = np.random.default_rng(11)
+    path = tmp_path_factory.mktemp("maps") / "synthetic.mfmap"
+    builder = MapBuilder(preset("kitti"), path)
+    for index, (x, y, yaw) in enumerate(route(45)):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        builder.offer(PairedScan(index, 100.0 + index, points, pose))
+    builder.save()
+    queries = [scan_world(world, x, y, yaw, rng)
+               for x, y, yaw in route(10, lateral_offset_m=1.0, reverse=True)]
+    return path, queries

@@ -11,7 +11,7 @@ from sensor_msgs.msg import PointCloud2
 from mf_lpr_ros.pose import planar
 from mf_lpr_ros.ros.localiser import ManagedLocaliserNode
 from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
-from test_ros_nodes import errors, planar_of_message, synthetic_map  # noqa: F401 (fixture)
+from test_ros_nodes import errors, planar_of_message
 
 
 class Lifecycle:

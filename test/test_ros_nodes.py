@@ -12,7 +12,6 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live import MapBuilder, PairedScan
 from mf_lpr_ros.map_store import ReferenceMap
 from mf_lpr_ros.pose import planar, pose_matrix, wrap_angle
 from mf_lpr_ros.ros.common import ParameterFault
@@ -33,21 +32,6 @@ def planar_of_message(message: PoseWithCovarianceStamped) -> np.ndarray:
 def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return (float(np.hypot(*(estimate[:2] - truth[:2]))),
             abs(math.degrees(float(wrap_angle(estimate[2] - truth[2])))))
-
-
-@pytest.fixture(scope="module")
-def synthetic_map(tmp_path_factory, world):
-    """A map of one traversal of the generated world, and scans of a second (offset, reversed)."""
-    rng = np.random.default_rng(11)
-    path = tmp_path_factory.mktemp("maps") / "synthetic.mfmap"
-    builder = MapBuilder(CONFIG, path)
-    for index, (x, y, yaw) in enumerate(route(45)):
-        points, pose = scan_world(world, x, y, yaw, rng)
-        builder.offer(PairedScan(index, 100.0 + index, points, pose))
-    builder.save()
-    queries = [scan_world(world, x, y, yaw, rng)
-               for x, y, yaw in route(10, lateral_offset_m=1.0, reverse=True)]
-    return path, queries
 
 
 def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthetic_map):
