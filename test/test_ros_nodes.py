@@ -11,7 +11,6 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Float64MultiArray
 
-from mf_lpr_ros.config import preset
 from mf_lpr_ros.map_store import ReferenceMap
 from mf_lpr_ros.pose import planar, pose_matrix, wrap_angle
 from mf_lpr_ros.ros.common import ParameterFault
@@ -21,7 +20,6 @@ from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message,
                                      points_to_pointcloud2, seconds_to_stamp)
 from mf_lpr_ros.synthetic import route, scan_world
 
-CONFIG = preset("kitti")
 
 
 def planar_of_message(message: PoseWithCovarianceStamped) -> np.ndarray:
