@@ -1,8 +1,10 @@
 """The evaluation protocol, the methods compared under it, and the metrics (METHOD.md section 5).
 
-A protocol picks references (one per reference_spacing_m along the reference path) and queries
-(one per query_spacing_m along the query path, or every query_every-th scan, or the scans a
-dataset's own split names), and for each query the references it may match (older than
+A protocol picks references (one per reference_spacing_m along the reference path, 0 keeps every
+scan) and queries (one per query_spacing_m along the query path, or every query_every-th scan,
+or the scans a dataset's own split names), optionally within fixed frame ranges
+(reference_frames, query_frames: first and last index, inclusive, as BEVPlace splits a KITTI
+sequence into database and queries), and for each query the references it may match (older than
 exclude_recent_frames / exclude_recent_s in the single-sequence loop-closure protocol). A query is
 positive when some reference it may match lies within tolerance_m of it.
 
@@ -45,12 +47,19 @@ class Protocol:
     query_every: int = 1
     exclude_recent_frames: int = 0
     exclude_recent_s: float = 0.0
+    reference_frames: tuple[int, int] | None = None
+    query_frames: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if not self.tolerance_m > 0:
             raise ValueError(f"protocol tolerance_m must be > 0, got {self.tolerance_m}")
         if self.query_every < 1:
             raise ValueError(f"protocol query_every must be >= 1, got {self.query_every}")
+        for name in ("reference_frames", "query_frames"):
+            frames = getattr(self, name)
+            if frames is not None and not 0 <= frames[0] <= frames[1]:
+                raise ValueError(f"protocol {name} must be (first, last) with 0 <= first <= "
+                                 f"last, got {frames}")
 
 
 @dataclass
@@ -84,12 +93,12 @@ def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
     loop-closure protocol on reference)."""
     same_sequence = query is None
     query_seq = reference if same_sequence else query
-    ref_valid = _valid_poses(reference)
+    ref_valid = _valid_poses(reference) & _in_frames(len(reference), protocol.reference_frames)
     spacing = protocol.reference_spacing_m if protocol.reference_spacing_m is not None else spacing_m
     references = select_references(reference.poses[:, :3, 3], spacing, ref_valid)
     if not len(references):
         raise ValueError(f"{reference.name}: no scan with a valid pose to use as a reference")
-    query_valid = _valid_poses(query_seq)
+    query_valid = _valid_poses(query_seq) & _in_frames(len(query_seq), protocol.query_frames)
     if query_stamps is not None:
         query_valid &= _stamps_in(query_seq.stamps, np.asarray(query_stamps, dtype=np.float64))
     if protocol.query_spacing_m > 0:
@@ -108,6 +117,13 @@ def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
             "right"))
     keep = n_active > 0
     return Selection(references, queries[keep], n_active[keep])
+
+
+def _in_frames(count: int, frames: tuple[int, int] | None) -> np.ndarray:
+    indices = np.arange(count)
+    if frames is None:
+        return np.ones(count, dtype=bool)
+    return (indices >= frames[0]) & (indices <= frames[1])
 
 
 def _valid_poses(sequence: Sequence) -> np.ndarray:

@@ -60,10 +60,20 @@ class Rule:
 
 
 @dataclass(frozen=True)
+class Published:
+    """A figure another method's paper reports for one of the suite's pairs (recall@1)."""
+
+    pair: str
+    method: str
+    recall_at_1: float
+
+
+@dataclass(frozen=True)
 class Suite:
     name: str
     description: str
     rules: tuple[Rule, ...]
+    published: tuple[Published, ...] = ()
 
     def pairs(self, root: Path) -> list[Pair]:
         root = Path(root)
@@ -124,6 +134,39 @@ def _rule_pairs(rule: Rule, root: Path) -> list[Pair]:
     raise ValueError(f"unknown suite rule kind {rule.kind!r}")
 
 
+# BEVPlace's KITTI protocol (its own BEV images): database and query frame ranges per sequence,
+# every database frame a reference, a query counts when a database frame lies within 5 m.
+_BEVPLACE_FRAMES = {"00": ((0, 2999), (3200, 4540)), "02": ((0, 3399), (3600, 4660)),
+                    "05": ((0, 999), (1200, 2750)), "06": ((0, 599), (800, 1100))}
+# BEVPlace's reported recall@1 (%), normal and rotated copies.
+_BEVPLACE_RECALL = {"00": (99.7, 99.6), "02": (98.1, 93.5), "05": (99.3, 98.9),
+                    "06": (100.0, 100.0)}
+
+
+def _bevplace(folder: str, sequences: tuple[str, ...]) -> tuple[tuple[Rule, ...], tuple]:
+    """Rules (each sequence and its _rot copy under folder) and BEVPlace's published recall."""
+    rules, published = [], []
+    for sequence in sequences:
+        database, queries = _BEVPLACE_FRAMES[sequence]
+        protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=database,
+                            query_frames=queries)
+        for suffix, recall in zip(("", "_rot"), _BEVPLACE_RECALL[sequence]):
+            pattern = f"{folder}/{sequence}{suffix}"
+            rules.append(Rule("single", "kitti", protocol, (pattern,)))
+            published.append(Published(pattern.replace("/", "_"), "BEVPlace (published)",
+                                       recall / 100.0))
+    return tuple(rules), tuple(published)
+
+
+_BEVPLACE_TUNING = _bevplace("kitti_bev", ("00",))
+_BEVPLACE_HOLDOUT = _bevplace("holdout/kitti_bev", ("02", "05", "06"))
+_BEVPLACE_TEXT = ("BEVPlace's KITTI protocol on its BEV images: database frames 00: 0-2999, "
+                  "02: 0-3399, 05: 0-999, 06: 0-599 (every frame a reference), queries 00: "
+                  "3200-4540, 02: 3600-4660, 05: 1200-2750, 06: 800-1100, 5 m (2-D); each "
+                  "sequence and its _rot copy (every frame turned by its own random yaw, poses "
+                  "unrotated: only retrieval recall@1 is meaningful there), with BEVPlace's "
+                  "published recall@1 beside")
+
 _PAPER_NCLT = Protocol(25.0, reference_spacing_m=4.0, query_spacing_m=10.0)
 _PAPER_OXFORD = Protocol(25.0, reference_spacing_m=4.0, query_spacing_m=10.0)
 _WILDPLACES_INTER = Protocol(3.0, reference_spacing_m=2.0)
@@ -162,6 +205,11 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
           "references at least 600 s older, refs every 2 m, 3 m tolerance",
           (Rule("single", "wildplaces", _WILDPLACES_INTRA,
                 ("Venman/V-03", "Venman/V-04", "Karawatha/K-03", "Karawatha/K-04")),)),
+    Suite("kitti-bevplace",
+          _BEVPLACE_TEXT + "; 00 (tuning) and the held-out 02, 05, 06 (--root ../shared/data)",
+          _BEVPLACE_TUNING[0] + _BEVPLACE_HOLDOUT[0], _BEVPLACE_TUNING[1] + _BEVPLACE_HOLDOUT[1]),
+    Suite("kitti-bevplace-00", _BEVPLACE_TEXT + "; 00 and 00_rot only (the tuning sequence)",
+          *_BEVPLACE_TUNING),
     Suite("shared-data",
           "The development sets of ../shared/data (the acceptance table of issue 4): BALM "
           "handheld, HKU main building (Livox) and KITTI 00 BEV, single-sequence loop closures",
@@ -202,6 +250,7 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
         results[(pair.name, method)] = saved
     rows = [{"pair": pair.name, "method": results[(pair.name, m)].method,
              **results[(pair.name, m)].summary} for pair in pairs for m in methods]
+    rows += [published_row(figure, rows) for figure in suite.published]
     rows += average_rows(rows)
     _write_outputs(out, suite, pairs, rows)
     if figures:
@@ -242,6 +291,15 @@ def write_json_atomic(path: Path, payload: dict) -> None:
     except BaseException:
         Path(handle.name).unlink(missing_ok=True)
         raise
+
+
+def published_row(figure: Published, rows: list[dict]) -> dict:
+    """A table row for a published figure: its recall@1, the pair's query count, NaN elsewhere."""
+    queries = next((row["n_queries"] for row in rows if row["pair"] == figure.pair), math.nan)
+    row = {key: math.nan for key in ("n_evaluated", "n_references", *TABLE_COLUMNS)}
+    row.update(pair=figure.pair, method=figure.method, n_queries=queries,
+               recall_at_1=figure.recall_at_1)
+    return row
 
 
 def average_rows(rows: list[dict]) -> list[dict]:

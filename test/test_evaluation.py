@@ -42,6 +42,18 @@ def test_loop_closure_exclusion_by_frames_and_seconds():
     assert (own.n_active == own.queries).all()          # never itself
 
 
+def test_frame_ranges_split_one_sequence_into_database_and_queries():
+    # BEVPlace's way: database frames 0-9 (every one a reference), queries 15-24.
+    protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=(0, 9),
+                        query_frames=(15, 24))
+    selection = select(Line(30), protocol, spacing_m=2.0)
+    assert selection.references.tolist() == list(range(10))
+    assert selection.queries.tolist() == list(range(15, 25))
+    assert (selection.n_active == 10).all()
+    with pytest.raises(ValueError, match="query_frames"):
+        Protocol(5.0, query_frames=(9, 3))
+
+
 def test_query_split_restricts_queries_by_stamp():
     selection = select(Line(10), Protocol(3.0), spacing_m=1.0, query=Line(10),
                        query_stamps=np.array([3.00001, 7.0, 42.0]))

@@ -11,7 +11,7 @@ from mf_lpr_ros import suite as suite_module
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.datasets import DatasetError
 from mf_lpr_ros.evaluation import Protocol
-from mf_lpr_ros.suite import SUITES, Rule, Suite, run_suite
+from mf_lpr_ros.suite import SUITES, Published, Rule, Suite, run_suite
 from mf_lpr_ros.synthetic import route, write_kitti_sequence
 
 
@@ -35,6 +35,24 @@ def test_paper_presets_pair_the_papers_sessions(tmp_path):
     (tmp_path / "2013-04-05").rmdir()
     with pytest.raises(DatasetError, match="'2013-04-05'"):
         SUITES["nclt-paper"].pairs(tmp_path)
+
+
+def test_kitti_bevplace_preset_uses_bevplaces_splits_and_published_figures(tmp_path):
+    for folder in ("kitti_bev/00", "kitti_bev/00_rot", "holdout/kitti_bev/02",
+                   "holdout/kitti_bev/02_rot", "holdout/kitti_bev/05",
+                   "holdout/kitti_bev/05_rot", "holdout/kitti_bev/06", "holdout/kitti_bev/06_rot"):
+        (tmp_path / folder).mkdir(parents=True)
+    pairs = {p.name: p for p in SUITES["kitti-bevplace"].pairs(tmp_path)}
+    assert sorted(pairs) == sorted(f"{root}_{s}{r}" for root, s in (
+        ("kitti_bev", "00"), ("holdout_kitti_bev", "02"), ("holdout_kitti_bev", "05"),
+        ("holdout_kitti_bev", "06")) for r in ("", "_rot"))
+    assert pairs["holdout_kitti_bev_02_rot"].protocol == Protocol(
+        5.0, reference_spacing_m=0.0, reference_frames=(0, 3399), query_frames=(3600, 4660))
+    assert all(p.query is None and p.preset == "kitti" for p in pairs.values())
+    published = {(f.pair, f.recall_at_1) for f in SUITES["kitti-bevplace"].published}
+    assert ("holdout_kitti_bev_02_rot", 0.935) in published and len(published) == 8
+    tuning = SUITES["kitti-bevplace-00"].pairs(tmp_path)
+    assert [p.name for p in tuning] == ["kitti_bev_00", "kitti_bev_00_rot"]
 
 
 def test_wildplaces_inter_sequence_pairs_use_the_query_split(tmp_path):
@@ -70,7 +88,8 @@ def two_days(tmp_path_factory, world):
 def test_suite_runs_resumes_and_writes_outputs(two_days, tmp_path, monkeypatch):
     small = Suite("small", "two synthetic days", (
         Rule("cross", "kitti", Protocol(3.0), ("day1",), ("day2",)),
-        Rule("single", "kitti", Protocol(5.0, exclude_recent_frames=30), ("day1",))))
+        Rule("single", "kitti", Protocol(5.0, exclude_recent_frames=30), ("day1",))),
+        (Published("day1__day2", "Other (published)", 0.5),))
     calls = []
     real = suite_module.evaluate_pair
 
@@ -86,8 +105,11 @@ def test_suite_runs_resumes_and_writes_outputs(two_days, tmp_path, monkeypatch):
     assert cross["n_queries"] == 12 and cross["recall_at_1_corrected"] >= 0.9
     means = [r for r in rows if r["pair"].startswith("mean of 2")]
     assert [r["method"] for r in means] == ["MF-LPR (ours)", "Scan Context"]
+    other = next(r for r in rows if r["method"] == "Other (published)")
+    assert other["recall_at_1"] == 0.5 and other["n_queries"] == 12
+    assert np.isnan(other["recall_at_1_corrected"])
     with open(out / "results.csv") as handle:
-        assert len(list(csv.DictReader(handle))) == 6
+        assert len(list(csv.DictReader(handle))) == 8
     saved = json.loads((out / "results.json").read_text())
     assert saved["suite"] == "small" and len(saved["pairs"]) == 2
     assert "| day1__day2 | MF-LPR (ours) | 12 |" in (out / "table.md").read_text()
