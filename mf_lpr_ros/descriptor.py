@@ -22,8 +22,23 @@ class InvalidCloudError(ValueError):
     """A point cloud cannot be turned into a descriptor; the message says why."""
 
 
+@lru_cache(maxsize=8)
+def _disc(size: int) -> np.ndarray:
+    centres = np.arange(size) - size / 2 + 0.5
+    inside = np.hypot(*np.meshgrid(centres, centres)) <= size / 2
+    inside.setflags(write=False)
+    return inside
+
+
+def footprint(params: DescriptorParams) -> np.ndarray | None:
+    """The cells a descriptor covers (D x D bool, read-only): None for the whole square window,
+    the inscribed disc for crop "disc"."""
+    return _disc(params.size) if params.crop == "disc" else None
+
+
 def filter_points(points: np.ndarray, params: DescriptorParams) -> np.ndarray:
-    """Finite points inside the height band, range and square window, as (N, 3) float64."""
+    """Finite points inside the height band, range and window (square or disc), as (N, 3)
+    float64."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InvalidCloudError(f"points must have shape (N, 3+), got {points.shape}")
@@ -37,6 +52,8 @@ def filter_points(points: np.ndarray, params: DescriptorParams) -> np.ndarray:
         keep &= xyz[:, 2] <= params.z_max
     if params.max_range is not None:
         keep &= np.hypot(xyz[:, 0], xyz[:, 1]) <= params.max_range
+    if params.crop == "disc":
+        keep &= np.hypot(xyz[:, 0], xyz[:, 1]) < half
     return xyz[keep]
 
 
@@ -68,8 +85,11 @@ def height_density(points: np.ndarray, params: DescriptorParams) -> np.ndarray:
 
 
 def occupancy_from_density(density: np.ndarray, params: DescriptorParams) -> np.ndarray:
-    """Occupied cells (bool, D x D): density strictly above the threshold d."""
-    return np.asarray(density) > params.density_threshold
+    """Occupied cells (bool, D x D): density strictly above the threshold d, inside the
+    footprint."""
+    occupied = np.asarray(density) > params.density_threshold
+    covered = footprint(params)
+    return occupied if covered is None else occupied & covered
 
 
 def cap_patches(occupancy: np.ndarray, params: DescriptorParams, seed: int) -> np.ndarray:
@@ -137,9 +157,14 @@ def _finish(occupancy: np.ndarray, params: DescriptorParams, reference: bool,
     return occupancy
 
 
-def weighted(occupancy: np.ndarray, unoccupied_weight: float) -> np.ndarray:
-    """Occupancy as matched-filter weights: 1 occupied, w unoccupied (float32)."""
-    return np.where(occupancy, np.float32(1.0), np.float32(unoccupied_weight))
+def weighted(occupancy: np.ndarray, unoccupied_weight: float,
+             covered: np.ndarray | None = None) -> np.ndarray:
+    """Occupancy as matched-filter weights (float32): 1 occupied, w unoccupied, and 0 outside
+    the covered cells (a footprint; None covers all)."""
+    if covered is None:
+        return np.where(occupancy, np.float32(1.0), np.float32(unoccupied_weight))
+    empty = np.where(covered, np.float32(unoccupied_weight), np.float32(0.0))
+    return np.where(occupancy & covered, np.float32(1.0), empty)
 
 
 def pool(images: np.ndarray, factor: int) -> np.ndarray:
@@ -151,19 +176,33 @@ def pool(images: np.ndarray, factor: int) -> np.ndarray:
     return blocks.mean(axis=(-3, -1), dtype=np.float32)
 
 
-def pooled_weights(occupancy: np.ndarray, unoccupied_weight: float, factor: int) -> np.ndarray:
-    """pool(weighted(occupancy, w), factor), from occupied counts per block: ~10x faster."""
+def pooled_weights(occupancy: np.ndarray, unoccupied_weight: float, factor: int,
+                   covered: np.ndarray | None = None) -> np.ndarray:
+    """pool(weighted(occupancy, w, covered), factor), from occupied counts per block: ~10x
+    faster."""
     if factor == 1:
-        return weighted(occupancy, unoccupied_weight)
-    *lead, rows, cols = occupancy.shape
-    blocks = occupancy.view(np.uint8).reshape(*lead, rows // factor, factor, cols // factor,
-                                              factor)
+        return weighted(occupancy, unoccupied_weight, covered)
+    if covered is not None:
+        occupancy = occupancy & covered
+    counts = _block_counts(occupancy, factor)
+    scale = np.float32((1.0 - unoccupied_weight) / factor ** 2)
+    if covered is None:
+        return counts.astype(np.float32) * scale + np.float32(unoccupied_weight)
+    empty = _block_counts(covered, factor).astype(np.float32) * np.float32(
+        unoccupied_weight / factor ** 2)
+    return counts.astype(np.float32) * scale + empty
+
+
+def _block_counts(cells: np.ndarray, factor: int) -> np.ndarray:
+    """True cells per factor x factor block over the last two axes (uint16)."""
+    *lead, rows, cols = cells.shape
+    blocks = np.ascontiguousarray(cells).view(np.uint8).reshape(
+        *lead, rows // factor, factor, cols // factor, factor)
     counts = np.zeros((*lead, rows // factor, cols // factor), dtype=np.uint16)
     for i in range(factor):
         for j in range(factor):
             counts += blocks[..., i, :, j]
-    scale = np.float32((1.0 - unoccupied_weight) / factor ** 2)
-    return counts.astype(np.float32) * scale + np.float32(unoccupied_weight)
+    return counts
 
 
 @lru_cache(maxsize=64)

@@ -25,7 +25,7 @@ from .config import Config
 from .datasets import Scan, Sequence
 from .datasets.base import nearest_keys
 from .map_store import ReferenceMap
-from .pipeline import describe_scan, prepared_points, select_references
+from .pipeline import describe_scan, prepared_points, record_sensor_offset, select_references
 from .pose import planar, wrap_angle
 from .scan_context import ScanContextIndex
 from .refine import refine_match
@@ -142,6 +142,7 @@ def _stamps_in(stamps: np.ndarray, wanted: np.ndarray) -> np.ndarray:
 class _DescribedScan:
     occupancy: np.ndarray
     points: np.ndarray | None
+    sensor_offset_m: float = 0.0
 
 
 class MatchedFilterMethod:
@@ -160,18 +161,20 @@ class MatchedFilterMethod:
         points = prepared_points(scan, self.config.descriptor) \
             if self.config.search.verify_fitness > 0 and scan.points is not None else None
         return _DescribedScan(describe_scan(scan, self.config.descriptor, reference=reference),
-                              points)
+                              points, scan.sensor_offset_m)
 
     def build(self, descriptors: list, poses: np.ndarray, stamps: np.ndarray) -> None:
         reference_map = ReferenceMap(self.config.descriptor)
         for described, pose, stamp in zip(descriptors, poses, stamps):
             reference_map.append(described.occupancy, pose, float(stamp), len(reference_map),
                                  described.points)
+        record_sensor_offset(reference_map, {scan.sensor_offset_m for scan in descriptors})
         self._index = MatchedFilterIndex(reference_map, self.config.search)
 
     def query(self, descriptor: _DescribedScan, n_active: int, odometry: np.ndarray
               ) -> Retrieval:
-        match = self._index.query(descriptor.occupancy, n_active=n_active)
+        match = self._index.query(descriptor.occupancy, n_active=n_active,
+                                  sensor_offset_m=descriptor.sensor_offset_m)
         geometric = None
         if descriptor.points is not None and self._index.map.has_clouds:
             def geometric(found):

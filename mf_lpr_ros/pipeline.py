@@ -81,12 +81,25 @@ def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
     indices = select_references(sequence.poses[:, :3, 3], config.spacing_m, valid)
     reference_map = ReferenceMap(config.descriptor, sensor_frame_id=getattr(sequence, "frame_id", ""),
                                  metadata={"source": sequence.name, "spacing_m": config.spacing_m})
+    offsets = set()
     for scan in progress_bar(sequence.iter_scans(indices), total=len(indices), desc="build map",
                              enabled=progress, unit="scan"):
         occupancy = describe_scan(scan, config.descriptor, reference=True)
         cloud = prepared_points(scan, config.descriptor) if keep_clouds else None
         reference_map.append(occupancy, scan.pose, scan.stamp, scan.index, cloud)
+        offsets.add(scan.sensor_offset_m)
+    record_sensor_offset(reference_map, offsets)
     return reference_map
+
+
+def record_sensor_offset(reference_map: ReferenceMap, offsets: set[float]) -> None:
+    """Store the references' common Scan.sensor_offset_m in the map (the search reads it)."""
+    if len(offsets) > 1:
+        raise ValueError(f"the references mix sensor offsets {sorted(offsets)} (density images "
+                         f"of different layouts); build one map per layout")
+    offset = offsets.pop() if offsets else 0.0
+    if offset:
+        reference_map.metadata["sensor_offset_m"] = offset
 
 
 @dataclass
@@ -131,7 +144,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         started = time.perf_counter()
         occupancy = describe_scan(scan, reference_map.params, reference=False)
         descriptor_ms = (time.perf_counter() - started) * 1e3
-        match = index.query(occupancy)
+        match = index.query(occupancy, sensor_offset_m=scan.sensor_offset_m)
         geometric = None
         if reference_map.has_clouds and scan.points is not None:
             points = prepared_points(scan, reference_map.params)

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import ConfigError, SearchParams
-from .descriptor import pooled_weights, prepare_rotations, rotate_occupancy, weighted
+from .descriptor import (footprint, pooled_weights, prepare_rotations, rotate_occupancy,
+                         weighted)
 from .map_store import ReferenceMap
 from .matched_filter import SpectralBank, correlate_fft2
 from .prefilter import PolarSpectrumIndex
@@ -58,8 +59,9 @@ class MatchResult:
         near 0 when another place scores as well (a look-alike), and 0 when no other place
         was searched (nothing to tell the match apart from).
     candidates: reference indices by rank (the match first, then the global ranking).
-    hypotheses: the local stage's finalists (SearchParams.top_n) by local score, the match
-        first, each with the pose it implies.
+    hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
+        re-ranking aligned it), the match first, the others by local score, each with the
+        pose it implies.
     """
 
     reference_index: int
@@ -83,6 +85,9 @@ class MatchedFilterIndex:
         self.map = reference_map
         self.params = reference_map.params
         self.search = search
+        self.covered = footprint(self.params)
+        self._map_offset = np.full(2, float(reference_map.metadata.get("sensor_offset_m", 0.0)))
+        self._query_offset = np.zeros(2)
         low_cell = self.params.voxel_size * self.params.pool
         self.low_shift = min(math.ceil(search.max_shift_m / low_cell), self.params.low_size - 1)
         self.high_shift = min(math.ceil(search.max_shift_m / self.params.voxel_size),
@@ -133,19 +138,25 @@ class MatchedFilterIndex:
         for first in range(start, stop, block):
             last = min(first + block, stop)
             occupancy = self.map.occupancy(slice(first, last))
-            low = pooled_weights(occupancy, self.params.unoccupied_weight, self.params.pool)
+            low = pooled_weights(occupancy, self.params.unoccupied_weight, self.params.pool,
+                                 self.covered)
             self.bank.append(low)
             if self.prefilter is not None:
                 self.prefilter.append(low)
         return stop - start
 
-    def query(self, occupancy: np.ndarray, n_active: int | None = None) -> MatchResult | None:
+    def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
+              sensor_offset_m: float = 0.0) -> MatchResult | None:
         """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
 
+        sensor_offset_m: the query's Scan.sensor_offset_m; the map's is in its metadata. Both
+        enter the pose: the alignment maps descriptor cells, and a sensor off the cell corner
+        turns with the query.
         Returns None when there is no reference to search. One query at a time per index: the
         query operator's buffer is shared.
         """
         with self._query_lock:
+            self._query_offset = np.full(2, float(sensor_offset_m))
             return self._query(occupancy, n_active)
 
     def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
@@ -155,7 +166,7 @@ class MatchedFilterIndex:
         started = time.perf_counter()
         w = self.params.unoccupied_weight
         low_queries = pooled_weights(rotate_occupancy(occupancy, self.global_angles), w,
-                                     self.params.pool)
+                                     self.params.pool, self.covered)
         operator = self.bank.prepare_queries(low_queries)
         prepared = time.perf_counter()
         top_k = self.search.prefilter_top_k
@@ -183,9 +194,15 @@ class MatchedFilterIndex:
         peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
                  for reference, (angle_index, *_) in zip(searched[finalists], located)]
         peaks.sort(key=lambda peak: -peak.score)
-        best = peaks[0]
-        result = self._result(best, ranked)
-        result.distinctiveness = self._distinctiveness(searched, scores, best.reference)
+        peaks = self._shortest_shift_first(peaks)
+        result = self._result(peaks[0], ranked)
+        distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
+        nearer = self._nearest_place(occupancy, result, peaks, searched, operator, volume,
+                                     n_refs)
+        if nearer is not None:
+            peaks = [nearer] + [peak for peak in peaks if peak is not nearer]
+            result = self._result(nearer, ranked)
+        result.distinctiveness = distinctiveness
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
         for peak in peaks[1:]:
@@ -196,6 +213,58 @@ class MatchedFilterIndex:
                              "prefilter": (prefilter_done - prepared) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
         return result
+
+    def _shortest_shift_first(self, peaks: list["_LocalPeak"]) -> list["_LocalPeak"]:
+        """peaks (best score first) with the one of least shift among those scoring within
+        rerank_margin of the best moved to the front: of two views of one place, the nearer."""
+        if self.search.rerank_margin <= 0 or len(peaks) < 2:
+            return peaks
+        floor = (1.0 - self.search.rerank_margin) * peaks[0].score
+        close = [k for k, peak in enumerate(peaks) if peak.score >= floor]
+        nearest = min(close, key=lambda k: np.hypot(peaks[k].row - self.high_shift,
+                                                     peaks[k].col - self.high_shift))
+        return [peaks[nearest]] + peaks[:nearest] + peaks[nearest + 1:]
+
+    def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
+                       peaks: list["_LocalPeak"], searched: np.ndarray, operator, volume,
+                       n_refs: int) -> "_LocalPeak | None":
+        """The reference nearest the matched pose, aligned, when it confirms the match.
+
+        The best-scoring reference is often not the nearest: a reference a few metres away
+        that sees more of the same scene can outscore it. The nearest reference (to the pose
+        the match implies) replaces the match when its own alignment scores within
+        rerank_margin of the match's and implies the same query position within
+        rerank_agreement_m: same place, same pose, the nearer view of it.
+        """
+        if self.search.rerank_margin <= 0:
+            return None
+        offsets = self.map.poses[:n_refs, :2, 3] - match.pose[:2]
+        nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
+        if nearest == peaks[0].reference:
+            return None
+        aligned = [peak for peak in peaks if peak.reference == nearest]
+        candidate = aligned[0] if aligned else self._local(
+            occupancy, nearest, self._coarse_angle(nearest, match, searched, operator, volume))
+        if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
+            return None
+        implied = self._result(candidate, np.array([nearest])).pose
+        if np.hypot(*(implied[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
+            return None
+        return candidate
+
+    def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray, operator,
+                      volume) -> float:
+        """The global-stage rotation for reference: its own best when the global stage scored
+        it, else the one the match's pose implies (snapped to the global angles, whose
+        rotation tables are prepared)."""
+        column = np.flatnonzero(searched == reference)
+        if len(column):
+            located = (self.bank.peaks(volume, column) if volume is not None
+                       else self.bank.locate(operator, [reference]))
+            return float(self.global_angles[int(located[0][0])])
+        relative = math.degrees(match.pose[2] - planar(self.map.poses[reference])[2])
+        index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
+        return float(self.global_angles[index])
 
     def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int) -> float:
         """1 - (best global score among references farther than distinct_radius_m from
@@ -224,8 +293,8 @@ class MatchedFilterIndex:
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         w = self.params.unoccupied_weight
         angles = global_angle + self.local_offsets
-        queries = weighted(rotate_occupancy(occupancy, angles), w)
-        reference_image = weighted(self.map.occupancy(reference), w)
+        queries = weighted(rotate_occupancy(occupancy, angles), w, self.covered)
+        reference_image = weighted(self.map.occupancy(reference), w, self.covered)
         surface = self._correlate_local(queries, reference_image, self.high_shift)
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
@@ -248,8 +317,10 @@ class MatchedFilterIndex:
         rotation_deg = peak.angles[peak.angle_index] + angle_offset * step
         shift_cells = np.array([peak.col - self.high_shift + offset[0],
                                 peak.row - self.high_shift + offset[1]])
-        shift_m = shift_cells * voxel
         rotation = math.radians(rotation_deg)
+        turn = np.array([[math.cos(rotation), -math.sin(rotation)],
+                         [math.sin(rotation), math.cos(rotation)]])
+        shift_m = shift_cells * voxel + turn @ self._query_offset - self._map_offset
 
         inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
         relative_covariance = np.zeros((3, 3))

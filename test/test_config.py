@@ -10,7 +10,8 @@ def test_paper_defaults():
     descriptor, search = DescriptorParams(), SearchParams()
     assert (descriptor.size, descriptor.pool, descriptor.unoccupied_weight) == (120, 2, -0.15)
     assert (descriptor.patch_size, descriptor.patch_cap) == (10, 20)
-    assert (search.rotation_step_deg, search.top_n) == (10.0, 2)
+    assert search.rotation_step_deg == 10.0
+    assert search.top_n == 3, "one finalist more than the paper's 2 (see SearchParams.top_n)"
     assert Config().spacing_m == 2.0
 
 

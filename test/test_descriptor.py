@@ -3,8 +3,9 @@ import pytest
 
 from mf_lpr_ros.config import DescriptorParams
 from mf_lpr_ros.descriptor import (InvalidCloudError, auto_voxel_size, cap_patches,
-                                   describe_density_image, describe_points, height_density, pool,
-                                   pooled_weights, rotate_occupancy, weighted)
+                                   describe_density_image, describe_points, footprint,
+                                   height_density, pool, pooled_weights, rotate_occupancy,
+                                   weighted)
 
 PARAMS = DescriptorParams(voxel_size=0.5, density_threshold=1.0)
 
@@ -110,3 +111,40 @@ def test_auto_voxel_size_follows_the_papers_rule(rng):
     sparse = [rng.uniform(-10, 10, (300, 3))]
     assert auto_voxel_size(dense) < auto_voxel_size(sparse)
     assert 0.2 <= auto_voxel_size(dense) <= 0.5
+
+
+def test_disc_crop_covers_the_same_ground_at_every_heading(world):
+    # Turning the sensor by 45 degrees: the square window's corners then hold other parts of
+    # the scene; the inscribed disc holds the same ground.
+    from mf_lpr_ros.synthetic import scan_world
+
+    rng = np.random.default_rng(3)
+    points, _ = scan_world(world, 5.0, -3.0, 0.0, rng)
+    turn = np.deg2rad(45.0)
+    rotation = np.array([[np.cos(turn), np.sin(turn), 0], [-np.sin(turn), np.cos(turn), 0],
+                         [0, 0, 1]])
+    turned = points[:, :3] @ rotation.T
+
+    def mismatch(crop):
+        params = DescriptorParams(voxel_size=0.4, z_min=-1.2, crop=crop)
+        upright = describe_points(points, params)
+        back = rotate_occupancy(describe_points(turned, params), np.array([45.0]))[0]
+        return np.logical_xor(upright, back).sum() / upright.sum()
+
+    disc, square = mismatch("disc"), mismatch("square")
+    assert disc < 0.8 * square  # both lose cells to resampling; the square also its corners
+    disc_params = DescriptorParams(voxel_size=0.4, z_min=-1.2, crop="disc")
+    assert not (describe_points(points, disc_params) & ~footprint(disc_params)).any()
+
+
+def test_cells_outside_the_footprint_weigh_nothing():
+    params = DescriptorParams(crop="disc")
+    covered = footprint(params)
+    occupancy = np.random.default_rng(4).random((3, 120, 120)) < 0.2
+    image = weighted(occupancy, -0.15, covered)
+    assert np.all(image[:, ~covered] == 0)
+    assert np.all(image[:, covered & ~occupancy[0]][0] == np.float32(-0.15))
+    np.testing.assert_allclose(pooled_weights(occupancy, -0.15, 2, covered),
+                               pool(image, 2), atol=1e-6)
+    assert footprint(DescriptorParams(crop="square")) is None
+    assert covered[60, 60] and not covered[0, 0] and covered[0, 60]

@@ -18,6 +18,9 @@ class Scan:
 
     density is in the package's axis convention (rows = y, columns = x, sensor at the centre
     corner) with density_pixel_m metres per pixel. pose is world_T_sensor (4x4) or None.
+    sensor_offset_m: where the sensor truly sits, along x and y, from that centre corner: half a
+    pixel for images that centre the sensor on a pixel (BEVPlace's), which no resampling onto
+    the package's grid can undo; the search corrects poses for it (MatchedFilterIndex.query).
     """
 
     index: int
@@ -26,6 +29,7 @@ class Scan:
     points: np.ndarray | None = None
     density: np.ndarray | None = None
     density_pixel_m: float = 0.0
+    sensor_offset_m: float = 0.0
 
 
 class Sequence:

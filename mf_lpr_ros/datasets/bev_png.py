@@ -3,7 +3,8 @@
 The layout of BEVPlace's KITTI images: 0.4 m per pixel, sensor at the centre pixel, the row
 index decreasing as x (forward) grows and the column index decreasing as y (left) grows,
 value / 25.5 = occupied voxels in the column. Images are turned into the package's axis
-convention (rows = y, columns = x, both increasing) on load.
+convention (rows = y, columns = x, both increasing) on load; the sensor stays half a pixel off
+the package's sensor corner (Scan.sensor_offset_m), at the centre of its pixel.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ class BevPngSequence(Sequence):
         for index in indices:
             yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
                        density=load_bev_density(self._files[index]),
-                       density_pixel_m=self.pixel_size_m)
+                       density_pixel_m=self.pixel_size_m,
+                       sensor_offset_m=self.pixel_size_m / 2)
 
 
 def load_bev_density(path: Path) -> np.ndarray:
