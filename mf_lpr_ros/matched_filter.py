@@ -202,8 +202,8 @@ def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -
              sp_fft.next_fast_len(width + max_shift, real=True))
     ref_spectrum = sp_fft.rfft2(reference.astype(np.float32), s=shape)
     query_spectra = sp_fft.rfft2(queries, s=shape, axes=(-2, -1))
-    full = sp_fft.irfft2(np.conj(query_spectra) * ref_spectrum, s=shape, axes=(-2, -1))
     window = np.arange(-max_shift, max_shift + 1)
-    rows = window % shape[0]
-    cols = window % shape[1]
-    return full[:, rows][:, :, cols].astype(np.float32)
+    # Inverse along y first and keep the window's rows: the inverse along x then runs on
+    # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
+    rows = sp_fft.ifft(np.conj(query_spectra) * ref_spectrum, axis=-2)[:, window % shape[0]]
+    return sp_fft.irfft(rows, n=shape[1], axis=-1)[:, :, window % shape[1]].astype(np.float32)

@@ -295,7 +295,7 @@ class MatchedFilterIndex:
         angles = global_angle + self.local_offsets
         queries = weighted(rotate_occupancy(occupancy, angles), w, self.covered)
         reference_image = weighted(self.map.occupancy(reference), w, self.covered)
-        surface = self._correlate_local(queries, reference_image, self.high_shift)
+        surface = self._coarse_to_fine(queries, reference_image)
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
@@ -305,6 +305,26 @@ class MatchedFilterIndex:
         return _LocalPeak(reference=reference, score=raw / normaliser,
                           confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))
+
+    def _coarse_to_fine(self, queries: np.ndarray, reference_image: np.ndarray) -> np.ndarray:
+        """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:
+        every other angle first, then the two beside the best of those; the rest stay -inf.
+        The score falls off smoothly over a few degrees, so the peak lies beside the best
+        of every other angle, and the sub-degree fit needs only it and its two neighbours:
+        ~3/4 of the correlations of all angles."""
+        n_angles = len(queries)
+        if n_angles < 5:
+            return self._correlate_local(queries, reference_image, self.high_shift)
+        shifts = 2 * self.high_shift + 1
+        surface = np.full((n_angles, shifts, shifts), -np.inf, dtype=np.float32)
+        coarse = np.arange(0, n_angles, 2)
+        surface[coarse] = self._correlate_local(queries[coarse], reference_image,
+                                                self.high_shift)
+        best = int(coarse[np.argmax(surface[coarse].reshape(len(coarse), -1).max(axis=1))])
+        beside = np.array([k for k in (best - 1, best + 1) if 0 <= k < n_angles])
+        surface[beside] = self._correlate_local(queries[beside], reference_image,
+                                                self.high_shift)
+        return surface
 
     def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
         voxel = self.params.voxel_size
