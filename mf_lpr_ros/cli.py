@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import PRESETS, Config, ConfigError, load_config, preset
+from .config import PRESET_NAMES, Config, ConfigError, load_config, preset
 from .datasets import DatasetError, open_source
 from .descriptor import InvalidCloudError
 from .evaluation import METHODS
@@ -42,8 +42,9 @@ def _config(args: argparse.Namespace) -> Config:
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", default="default", choices=sorted(PRESETS),
-                        help="parameter preset (default: %(default)s)")
+    parser.add_argument("--preset", default="default", choices=PRESET_NAMES,
+                        help="parameter preset; auto derives the descriptor from the scans "
+                             "(voxel size, height band, field of view; default: %(default)s)")
     parser.add_argument("--config", help="YAML file overriding the preset (see config/)")
     parser.add_argument("--cloud-topic", help="PointCloud2 topic of a bag (default: the only one)")
     parser.add_argument("--pose-topic", help="Odometry/PoseStamped topic of a bag (default: the only one)")
@@ -58,8 +59,10 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     reference_map = build_map(sequence, config, keep_clouds=args.keep_clouds,
                               progress=not args.quiet)
     reference_map.save(args.out)
+    if "auto" in reference_map.metadata:
+        print(reference_map.metadata["auto"]["choice"])
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
-          f"(voxel {config.descriptor.voxel_size} m, spacing {config.spacing_m} m)")
+          f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
     return 0
 
 
@@ -113,6 +116,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     results = evaluate(reference, config, args.tolerance, query=query, method=args.method,
                        **_protocol_arguments(args))
     results["config"] = config.to_dict()
+    if "auto" in results:
+        print(results["auto"]["choice"])
     text = json.dumps(results, indent=2)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

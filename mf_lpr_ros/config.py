@@ -41,6 +41,13 @@ class DescriptorParams:
         (radius size * voxel_size / 2) and gives the cells outside it weight 0 rather than w,
         so that a scan and the same scan turned by any yaw cover the same ground: the
         square's corners hold different parts of the scene at different headings.
+    field_of_view_deg, heading_deg: the sensor's horizontal field of view, centred on
+        heading_deg (0 = +x, counter-clockwise). Below 360 the footprint is that wedge of the
+        window, and the cells outside it weigh 0: a forward-looking sensor (a Livox Avia sees
+        ~70 deg) has not seen them, they are not free space. The query's wedge turns with it
+        in the search, and rotations wider than the field of view (no common ground) are not
+        searched. Measured on the HKU Avia keyframes (70 deg): recall unchanged (0.714), 2
+        false closures published where 360 published none, so it is off by default.
     """
 
     size: int = 120
@@ -57,6 +64,8 @@ class DescriptorParams:
     seed: int = 0
     level: bool = False
     crop: str = "disc"
+    field_of_view_deg: float = 360.0
+    heading_deg: float = 0.0
 
     def __post_init__(self) -> None:
         _require(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8", self.size)
@@ -73,6 +82,10 @@ class DescriptorParams:
         _require(self.pool >= 1 and self.size % self.pool == 0, "pool",
                  f"a divisor of size ({self.size})", self.pool)
         _require(self.crop in ("square", "disc"), "crop", "'square' or 'disc'", self.crop)
+        _require(0 < self.field_of_view_deg <= 360, "field_of_view_deg", "in (0, 360]",
+                 self.field_of_view_deg)
+        _require(-180 <= self.heading_deg <= 180, "heading_deg", "in [-180, 180]",
+                 self.heading_deg)
         if self.z_min is not None and self.z_max is not None:
             _require(self.z_min < self.z_max, "z_min", f"< z_max ({self.z_max})", self.z_min)
         if self.max_range is not None:
@@ -210,11 +223,16 @@ class SearchParams:
 
 @dataclass(frozen=True)
 class Config:
-    """Everything the pipeline needs: descriptor, search and map-building parameters."""
+    """Everything the pipeline needs: descriptor, search and map-building parameters.
+
+    auto: the descriptor is still to be derived from the scans (preset "auto",
+    mf_lpr_ros/auto_params.py); whatever builds a map resolves it from its first scans.
+    """
 
     descriptor: DescriptorParams = field(default_factory=DescriptorParams)
     search: SearchParams = field(default_factory=SearchParams)
     spacing_m: float = 2.0
+    auto: bool = False
 
     def __post_init__(self) -> None:
         _require(self.spacing_m >= 0, "spacing_m", ">= 0", self.spacing_m)
@@ -241,12 +259,17 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 
 CONFIG_KEYS = frozenset({"preset", "descriptor", "search", "spacing_m"})
+AUTO_PRESET = "auto"
+PRESET_NAMES = tuple(sorted(PRESETS)) + (AUTO_PRESET,)
 
 
 def preset(name: str) -> Config:
-    """The named preset (see PRESETS)."""
+    """The named preset (see PRESETS), or "auto": the defaults, with the descriptor left to be
+    derived from the scans (Config.auto)."""
+    if name == AUTO_PRESET:
+        return Config(auto=True)
     if name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+        raise ConfigError(f"unknown preset {name!r}; choose one of {list(PRESET_NAMES)}")
     return config_from_dict(PRESETS[name])
 
 
@@ -259,7 +282,7 @@ def config_from_dict(values: Mapping[str, Any], base: Config | None = None) -> C
     descriptor = _merge(base.descriptor, values.get("descriptor") or {}, "descriptor")
     search = _merge(base.search, values.get("search") or {}, "search")
     spacing = _coerce("spacing_m", "float", values.get("spacing_m", base.spacing_m))
-    return Config(descriptor=descriptor, search=search, spacing_m=spacing)
+    return Config(descriptor=descriptor, search=search, spacing_m=spacing, auto=base.auto)
 
 
 def load_config(path: str | Path, base: Config | None = None) -> Config:

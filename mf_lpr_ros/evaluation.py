@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .auto_params import map_metadata, resolve_for_sequence
 from .progress import progress_bar
 from .config import Config
 from .datasets import Scan, Sequence
@@ -497,10 +498,14 @@ def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
 def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
                   query: Sequence | None = None, query_stamps: np.ndarray | None = None,
                   method: str = "mf-lpr", progress: bool = True) -> PairResult:
-    """evaluate with a full Protocol, keeping the per-query records."""
+    """evaluate with a full Protocol, keeping the per-query records. Preset auto derives the
+    descriptor from the reference sequence (summary["auto"] says what it chose)."""
     selection = select(reference, protocol, config.spacing_m, query=query,
                        query_stamps=query_stamps)
+    config, profile = resolve_for_sequence(config, reference)
     runner = make_method(method, config)
     records = run_protocol(runner, reference, selection, query=query, progress=progress)
-    return PairResult(runner.name, summarise(records, protocol.tolerance_m,
-                                             len(selection.references)), records)
+    summary = summarise(records, protocol.tolerance_m, len(selection.references))
+    if profile is not None:
+        summary["auto"] = map_metadata(profile, config.descriptor)
+    return PairResult(runner.name, summary, records)

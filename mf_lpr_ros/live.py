@@ -8,12 +8,13 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .auto_params import SAMPLE_SCANS, auto_config, map_metadata
 from .config import Config, SearchParams
 from .descriptor import InvalidCloudError, describe_points, stamp_seed_key
 from .map_store import ReferenceMap
@@ -180,28 +181,80 @@ def descriptor_points(points: np.ndarray, pose: np.ndarray | None, level: bool) 
 
 
 class MapBuilder:
-    """Keeps a reference every spacing_m metres of travel and saves the map atomically."""
+    """Keeps a reference every spacing_m metres of travel and saves the map atomically.
+
+    With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
+    held back until the descriptor is derived from them (auto_choice then says what was
+    chosen), and then described like every later scan; an existing map keeps its parameters.
+    """
 
     def __init__(self, config: Config, map_path: str | Path | None, *, frame_id: str = "map",
                  sensor_frame_id: str = "", keep_clouds: bool = False,
                  reference_map: ReferenceMap | None = None) -> None:
-        self.config = config
         self.map_path = None if map_path is None else Path(map_path)
         self.keep_clouds = keep_clouds
+        self.auto_choice: str | None = None
+        self.rejected_while_held = 0
+        self._held: list[PairedScan] | None = None
         if reference_map is None:
             reference_map = ReferenceMap(config.descriptor, frame_id=frame_id,
                                          sensor_frame_id=sensor_frame_id,
                                          metadata={"source": "map_builder",
                                                    "spacing_m": config.spacing_m})
+            if config.auto:
+                self._held = []
+        elif config.auto:
+            config = replace(config, descriptor=reference_map.params, auto=False)
         else:
             reference_map.check_params(config.descriptor)
+        self.config = config
         self.map = reference_map
         self.saved_references = len(reference_map)
         positions = reference_map.poses[:, :3, 3]
         self._last_position = positions[-1] if len(positions) else None
 
+    @property
+    def waiting_for_auto(self) -> bool:
+        """Scans are still held back for preset auto."""
+        return self._held is not None
+
     def offer(self, scan: PairedScan) -> int | None:
-        """Adds the scan as a reference when it is spacing_m from the last one; its index or None."""
+        """Adds the scan as a reference when it is spacing_m from the last one; its index or None
+        (or, for preset auto, the last reference the held-back scans gave once derived)."""
+        if self._held is not None:
+            self._held.append(scan)
+            return self.derive_auto() if len(self._held) >= SAMPLE_SCANS else None
+        return self._offer(scan)
+
+    def derive_auto(self) -> int | None:
+        """Derive the descriptor from the held-back scans (preset auto) and add them; the last
+        reference added or None. Nothing to do when nothing is held."""
+        held = self._held
+        if not held:
+            return None
+        try:
+            resolved, profile = auto_config([scan.points for scan in held], self.config,
+                                            [scan.pose[:3, :3] for scan in held])
+        except InvalidCloudError:
+            self._held = []
+            raise
+        self._held = None
+        self.config = resolved
+        metadata = dict(self.map.metadata, auto=map_metadata(profile, resolved.descriptor))
+        self.map = ReferenceMap(resolved.descriptor, frame_id=self.map.frame_id,
+                                sensor_frame_id=self.map.sensor_frame_id, metadata=metadata)
+        self.auto_choice = metadata["auto"]["choice"]
+        last = None
+        for scan in held:
+            try:
+                index = self._offer(scan)
+            except (InvalidCloudError, InvalidPoseError, ValueError):
+                self.rejected_while_held += 1
+                continue
+            last = index if index is not None else last
+        return last
+
+    def _offer(self, scan: PairedScan) -> int | None:
         position = scan.pose[:3, 3]
         if self._last_position is not None and \
                 np.linalg.norm(position - self._last_position) < self.config.spacing_m:

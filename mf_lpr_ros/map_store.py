@@ -64,16 +64,32 @@ class ReferenceMap:
         self.metadata = dict(metadata or {})
         n_bytes = params.size * params.size // 8
         self.occupancy_bits = np.zeros((0, n_bytes), dtype=np.uint8)
-        self.poses = np.zeros((0, 4, 4))
-        self.stamps = np.zeros(0)
-        self.source_indices = np.zeros(0, dtype=np.int64)
+        self._poses = np.zeros((0, 4, 4))
+        self._stamps = np.zeros(0)
+        self._source_indices = np.zeros(0, dtype=np.int64)
         self.cloud_points: np.ndarray | None = None
         self.cloud_offsets: np.ndarray | None = None
         self._pending: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray | None]] = []
 
     def __len__(self) -> int:
         self._flush_pending()
-        return len(self.stamps)
+        return len(self._stamps)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) world_T_sensor of every reference, those just appended included."""
+        self._flush_pending()
+        return self._poses
+
+    @property
+    def stamps(self) -> np.ndarray:
+        self._flush_pending()
+        return self._stamps
+
+    @property
+    def source_indices(self) -> np.ndarray:
+        self._flush_pending()
+        return self._source_indices
 
     @property
     def planar_poses(self) -> np.ndarray:
@@ -102,10 +118,10 @@ class ReferenceMap:
         packed = np.packbits(occupancy.astype(bool).ravel())
         kept = None if cloud is None else np.asarray(cloud, dtype=np.float32)[:, :3]
         self._pending.append((packed, pose, float(stamp), int(source_index), kept))
-        return len(self.stamps) + len(self._pending) - 1
+        return len(self._stamps) + len(self._pending) - 1
 
     def _pending_or_stored_without_clouds(self) -> bool:
-        if len(self.stamps) and self.cloud_offsets is None:
+        if len(self._stamps) and self.cloud_offsets is None:
             return True
         return any(entry[4] is None for entry in self._pending)
 
@@ -115,9 +131,10 @@ class ReferenceMap:
         packed, poses, stamps, sources, clouds = zip(*self._pending)
         self._pending = []
         self.occupancy_bits = np.concatenate([self.occupancy_bits, np.stack(packed)])
-        self.poses = np.concatenate([self.poses, np.stack(poses)])
-        self.stamps = np.concatenate([self.stamps, np.array(stamps)])
-        self.source_indices = np.concatenate([self.source_indices, np.array(sources, np.int64)])
+        self._poses = np.concatenate([self._poses, np.stack(poses)])
+        self._stamps = np.concatenate([self._stamps, np.array(stamps)])
+        self._source_indices = np.concatenate([self._source_indices,
+                                               np.array(sources, np.int64)])
         if clouds[0] is not None:
             old_points = self.cloud_points if self.cloud_points is not None else np.zeros((0, 3),
                                                                                          np.float32)
@@ -219,7 +236,8 @@ class ReferenceMap:
             raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
         try:
             header = json.loads(header_bytes)
-            params = descriptor_params_from_dict(header["descriptor"])
+            # Maps written before the disc crop existed were cropped square.
+            params = descriptor_params_from_dict({"crop": "square", **header["descriptor"]})
             n_refs = int(header["n_references"])
             table = {name: (int(entry["offset"]), np.dtype(entry["dtype"]), tuple(entry["shape"]),
                             int(entry["crc32"])) for name, entry in header["arrays"].items()}
@@ -247,9 +265,9 @@ class ReferenceMap:
             if name not in loaded or loaded[name].shape != shape:
                 raise MapFileError(f"{path}: array {name!r} missing or of the wrong shape")
         reference_map.occupancy_bits = loaded["occupancy_bits"]
-        reference_map.poses = loaded["poses"]
-        reference_map.stamps = loaded["stamps"]
-        reference_map.source_indices = loaded["source_indices"]
+        reference_map._poses = loaded["poses"]
+        reference_map._stamps = loaded["stamps"]
+        reference_map._source_indices = loaded["source_indices"]
         if "cloud_offsets" in loaded:
             reference_map.cloud_points = loaded["cloud_points"]
             reference_map.cloud_offsets = loaded["cloud_offsets"]

@@ -8,6 +8,7 @@ from typing import Iterable
 
 import numpy as np
 
+from .auto_params import map_metadata, resolve_for_sequence
 from .progress import progress_bar
 from .config import Config, DescriptorParams, SearchParams
 from .datasets import Scan, Sequence
@@ -76,11 +77,17 @@ def _valid_poses(sequence: Sequence) -> np.ndarray:
 
 def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
               progress: bool = True) -> ReferenceMap:
-    """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres."""
+    """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres
+    (preset auto: the descriptor derived from the sequence first, and the choice recorded in
+    the map's metadata)."""
     valid = _valid_poses(sequence)
     indices = select_references(sequence.poses[:, :3, 3], config.spacing_m, valid)
+    config, profile = resolve_for_sequence(config, sequence)
+    metadata = {"source": sequence.name, "spacing_m": config.spacing_m}
+    if profile is not None:
+        metadata["auto"] = map_metadata(profile, config.descriptor)
     reference_map = ReferenceMap(config.descriptor, sensor_frame_id=getattr(sequence, "frame_id", ""),
-                                 metadata={"source": sequence.name, "spacing_m": config.spacing_m})
+                                 metadata=metadata)
     offsets = set()
     for scan in progress_bar(sequence.iter_scans(indices), total=len(indices), desc="build map",
                              enabled=progress, unit="scan"):

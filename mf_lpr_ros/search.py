@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 import math
@@ -13,7 +14,7 @@ import numpy as np
 
 from .config import ConfigError, SearchParams
 from .descriptor import (footprint, pooled_weights, prepare_rotations, rotate_occupancy,
-                         weighted)
+                         turns_with_sensor, weighted)
 from .map_store import ReferenceMap
 from .matched_filter import SpectralBank, correlate_fft2
 from .prefilter import PolarSpectrumIndex
@@ -86,6 +87,9 @@ class MatchedFilterIndex:
         self.params = reference_map.params
         self.search = search
         self.covered = footprint(self.params)
+        self.covered_window = footprint(dataclasses.replace(self.params, field_of_view_deg=360.0))
+        if self.covered_window is None:
+            self.covered_window = np.ones((self.params.size,) * 2, dtype=bool)
         self._map_offset = np.full(2, float(reference_map.metadata.get("sensor_offset_m", 0.0)))
         self._query_offset = np.zeros(2)
         low_cell = self.params.voxel_size * self.params.pool
@@ -94,6 +98,11 @@ class MatchedFilterIndex:
                               self.params.size - 1)
         n_rotations = round(360 / search.rotation_step_deg)
         self.global_angles = np.arange(n_rotations) * search.rotation_step_deg
+        if turns_with_sensor(self.params):
+            # Two views of a limited field of view turned by more than its width share no
+            # ground: those rotations can only produce false matches.
+            turn = (self.global_angles + 180.0) % 360.0 - 180.0
+            self.global_angles = self.global_angles[np.abs(turn) < self.params.field_of_view_deg]
         half = search.local_rotation_range_deg
         step = search.local_rotation_step_deg
         n_side = int(np.floor(half / step + 1e-9))
@@ -166,7 +175,7 @@ class MatchedFilterIndex:
         started = time.perf_counter()
         w = self.params.unoccupied_weight
         low_queries = pooled_weights(rotate_occupancy(occupancy, self.global_angles), w,
-                                     self.params.pool, self.covered)
+                                     self.params.pool, self._query_covered(self.global_angles))
         operator = self.bank.prepare_queries(low_queries)
         prepared = time.perf_counter()
         top_k = self.search.prefilter_top_k
@@ -293,7 +302,7 @@ class MatchedFilterIndex:
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         w = self.params.unoccupied_weight
         angles = global_angle + self.local_offsets
-        queries = weighted(rotate_occupancy(occupancy, angles), w, self.covered)
+        queries = weighted(rotate_occupancy(occupancy, angles), w, self._query_covered(angles))
         reference_image = weighted(self.map.occupancy(reference), w, self.covered)
         surface = self._coarse_to_fine(queries, reference_image)
         reference_norm = float(np.linalg.norm(reference_image))
@@ -305,6 +314,13 @@ class MatchedFilterIndex:
         return _LocalPeak(reference=reference, score=raw / normaliser,
                           confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))
+
+    def _query_covered(self, angles: np.ndarray) -> np.ndarray | None:
+        """The footprint of the query turned by each angle: a field-of-view wedge turns with
+        the sensor; the disc and the square window do not."""
+        if self.covered is None or not turns_with_sensor(self.params):
+            return self.covered
+        return rotate_occupancy(self.covered, angles) & self.covered_window
 
     def _coarse_to_fine(self, queries: np.ndarray, reference_image: np.ndarray) -> np.ndarray:
         """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:

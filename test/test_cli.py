@@ -147,3 +147,25 @@ def test_progress_is_one_line_per_loop_in_a_log_and_a_bar_on_request(traversals,
     assert main(["build-map", str(traversals / "first"), "--out", str(tmp_path / "c.mfmap"),
                  "--preset", "kitti", "--quiet"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_preset_auto_builds_localises_and_evaluates(traversals, tmp_path, capsys):
+    map_path = tmp_path / "auto.mfmap"
+    assert main(["build-map", str(traversals / "first"), "--out", str(map_path), "--preset",
+                 "auto", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "preset auto on" in printed and "ground 1.7" in printed
+    reference_map = ReferenceMap.load(map_path)
+    assert reference_map.metadata["auto"]["choice"] in printed
+    results = tmp_path / "auto.csv"
+    assert main(["localise", str(map_path), str(traversals / "second"), "--out", str(results),
+                 "--preset", "auto", "--quiet"]) == 0
+    errors = np.array([float(r["translation_error_m"]) for r in csv.DictReader(results.open())])
+    assert np.median(errors) < 0.3
+    out = tmp_path / "auto.json"
+    assert main(["evaluate", "--reference", str(traversals / "first"), "--query",
+                 str(traversals / "second"), "--tolerance", "3", "--preset", "auto", "--json",
+                 str(out), "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    assert report["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
+    assert report["recall_at_1_corrected"] >= 0.9

@@ -18,6 +18,7 @@ import pytest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 
+from mf_lpr_ros.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.live import Localiser
 from mf_lpr_ros.map_store import MapFileError, ReferenceMap
@@ -240,3 +241,25 @@ def test_an_unwritable_map_path_is_reported_and_the_map_kept(ros_graph, world):
     assert ros_graph.wait_for(lambda: len(builder.builder.map) == 3)
     assert not builder.save()
     assert builder.counters["save_failures"] == 1 and builder.builder.unsaved == 3
+
+
+def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world, tmp_path):
+    map_path = tmp_path / "auto.mfmap"
+    builder = ros_graph.start(MapBuilderNode, preset="auto", map_path=str(map_path))
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(3)
+    n_scans = SAMPLE_SCANS + 3
+    for index in range(n_scans):
+        points, pose = scan_world(world, 3.0 * index - 20.0, 2.0, 0.1, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(10.0 + n_scans), "map", "velodyne",
+                                      np.eye(4)))
+    # The first SAMPLE_SCANS scans wait for the derivation, then all become references.
+    assert ros_graph.wait_for(lambda: len(builder.builder.map) == n_scans)
+    builder.finish()
+    saved = ReferenceMap.load(map_path)
+    assert len(saved) == n_scans
+    assert saved.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
+    assert saved.params.z_min is not None and saved.params.z_min < 0

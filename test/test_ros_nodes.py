@@ -187,6 +187,7 @@ def scan_pose(xy_yaw: np.ndarray) -> np.ndarray:
     ({"map_path": ""}, "map_path"),
     ({"extrinsic": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]}, "extrinsic"),
     ({"preset": "mars"}, "preset"),
+    ({"preset": "auto", "mode": "loop_closure", "pose_source": "odom"}, "preset: auto"),
     ({"descriptor.voxel_size": 0.5}, "voxel_size: map has 0.4"),
 ])
 def test_bad_parameters_are_refused_by_name(ros_graph, synthetic_map, overrides, name):

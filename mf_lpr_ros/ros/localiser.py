@@ -174,7 +174,13 @@ class LocaliserLogic(LidarNodeMixin):
         """Load the map and build the search; create_publisher is the node's publisher factory
         (create_lifecycle_publisher on a managed node)."""
         settings = self.settings
+        if settings.config.auto and self.mode == "loop_closure":
+            raise ParameterFault("parameter preset: auto derives the descriptor when a map is "
+                                 "built (map_builder, mf-lpr build-map); in loop_closure mode "
+                                 "the map grows from the first scan on, so name a preset")
         reference_map = self._open_map(settings.map_path, settings.config, settings.explicit)
+        if "auto" in reference_map.metadata:
+            self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
         if config.descriptor.level and settings.pose_source == "none":
             raise ParameterFault("parameter pose_source must name a pose stream: "

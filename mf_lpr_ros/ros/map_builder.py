@@ -15,6 +15,7 @@ from pathlib import Path
 
 from sensor_msgs.msg import PointCloud2
 
+from ..auto_params import SAMPLE_SCANS
 from ..descriptor import InvalidCloudError
 from ..live import InvalidPoseError, MapBuilder, PoseBuffer, ScanPoseSynchroniser
 from ..map_store import MapFileError, ReferenceMap
@@ -71,6 +72,7 @@ class MapBuilderNode(LidarNode):
         self.builder = MapBuilder(config, path, keep_clouds=keep_clouds, reference_map=existing,
                                   sensor_frame_id=self.sensor_frame_id,
                                   frame_id=self.map_frame_id or "map")
+        self._auto_reported = False
         self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
         self.synchroniser = ScanPoseSynchroniser(self.poses, extrinsic)
         self._next_index = int(self.builder.map.source_indices.max()) + 1 \
@@ -80,7 +82,7 @@ class MapBuilderNode(LidarNode):
         self.create_timer(self.save_period_s, self._periodic_save)
         self.get_logger().info(
             f"building {path} ({'appending to ' + str(len(existing)) + ' references' if existing else 'new map'}): "
-            f"voxel {config.descriptor.voxel_size} m, spacing {config.spacing_m} m, poses from "
+            f"voxel {self._voxel_text()}, spacing {config.spacing_m} m, poses from "
             f"'{POSE_SOURCES[self.pose_source][0]}'")
 
     def _on_scan(self, message: PointCloud2) -> None:
@@ -105,10 +107,23 @@ class MapBuilderNode(LidarNode):
                 self.counters["scans_rejected"] += 1
                 self.log_problem("describe", f"scan at {scan.stamp:.3f} not used: {error}")
                 continue
+            self._report_auto()
             if added is not None:
                 self.counters["references"] = len(self.builder.map)
                 self.get_logger().debug(f"reference {added} at stamp {scan.stamp:.3f}")
         self.counters["scans_without_pose"] = self.synchroniser.dropped_without_pose
+
+    def _voxel_text(self) -> str:
+        if self.builder.waiting_for_auto:
+            return f"from preset auto (derived from the first {SAMPLE_SCANS} scans)"
+        return f"{self.builder.config.descriptor.voxel_size} m"
+
+    def _report_auto(self) -> None:
+        if self.builder.auto_choice is not None and not self._auto_reported:
+            self._auto_reported = True
+            self.get_logger().info(self.builder.auto_choice)
+            if self.builder.rejected_while_held:
+                self.counters["scans_rejected"] += self.builder.rejected_while_held
 
     def _periodic_save(self) -> None:
         if self.builder.unsaved:
@@ -129,6 +144,13 @@ class MapBuilderNode(LidarNode):
 
     def finish(self) -> None:
         self._pair(final=True)
+        if self.builder.waiting_for_auto:
+            try:
+                self.builder.derive_auto()
+            except InvalidCloudError as error:
+                self.get_logger().error(f"preset auto: {error}; no map written")
+                return
+            self._report_auto()
         if self.builder.unsaved or not self.builder.map_path.exists():
             self.save()
         dropped = self.synchroniser.dropped_without_pose

@@ -1,0 +1,129 @@
+"""preset auto: the descriptor derived from the scans (mf_lpr_ros/auto_params.py)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.auto_params import (SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor)
+from mf_lpr_ros.config import Config, ConfigError, DescriptorParams, config_from_dict, preset
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.descriptor import InvalidCloudError, voxel_size_for_density
+from mf_lpr_ros.live import MapBuilder, PairedScan
+from mf_lpr_ros.pipeline import build_map
+from mf_lpr_ros.pose import pose_matrix
+from mf_lpr_ros.synthetic import route, scan_world, write_kitti_sequence
+
+
+def _scans(world, n=6, lift_m=0.0, seed=0):
+    """Scans of the generated world (ground 1.7 m below the sensor), the sensor raised by
+    lift_m."""
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for x, y, yaw in route(n):
+        points, _ = scan_world(world, x, y, yaw, rng)
+        clouds.append(points[:, :3] - np.array([0.0, 0.0, lift_m], dtype=np.float32))
+    return clouds
+
+
+@pytest.mark.parametrize("lift_m", [0.0, 1.0])
+def test_ground_and_height_band_follow_the_mount(world, lift_m):
+    profile = measure_sensor(_scans(world, lift_m=lift_m))
+    assert profile.ground_below_sensor_m == pytest.approx(1.7 + lift_m, abs=0.1)
+    params = auto_descriptor(profile, DescriptorParams())
+    # The band sits at the same height above the ground whatever the mount.
+    assert params.z_min + profile.ground_below_sensor_m == pytest.approx(0.5, abs=0.006)
+    assert params.z_max + profile.ground_below_sensor_m == pytest.approx(4.5, abs=0.006)
+    assert profile.horizontal_fov_deg == 360.0
+
+
+def test_voxel_size_follows_the_papers_rule_capped_by_the_sensors_reach(world):
+    clouds = _scans(world)
+    profile = measure_sensor(clouds)
+    params = auto_descriptor(profile, DescriptorParams())
+    expected = min(voxel_size_for_density(profile.occupied_voxels),
+                   2 * profile.range_p95_m / params.size)
+    assert params.voxel_size == pytest.approx(expected, abs=0.005)
+    # Scans seeing half as far get a window half as wide at most.
+    near = measure_sensor([c[np.hypot(c[:, 0], c[:, 1]) < 12.0] for c in clouds])
+    assert auto_descriptor(near, DescriptorParams()).extent_m <= 2 * near.range_p95_m + 0.6
+    # The paper's three points: denser scans, smaller voxels.
+    assert voxel_size_for_density(1360) == pytest.approx(0.3, abs=0.05)
+    assert voxel_size_for_density(275) == pytest.approx(1.3, abs=0.05)
+
+
+def test_field_of_view_and_tilt_are_measured(world):
+    clouds = _scans(world)
+    azimuth = [np.degrees(np.arctan2(c[:, 1], c[:, 0])) for c in clouds]
+    forward = [c[np.abs(a - 30.0) < 35.0] for c, a in zip(clouds, azimuth)]
+    profile = measure_sensor(forward)
+    assert profile.horizontal_fov_deg == pytest.approx(70.0, abs=10.0)
+    assert profile.heading_deg == pytest.approx(30.0, abs=5.0)
+    assert math.isnan(profile.tilt_spread_deg)
+    rng = np.random.default_rng(1)
+    tilted = [pose_matrix(np.zeros(3), _quaternion(rng.normal(0, 0.2), rng.normal(0, 0.2)))[:3, :3]
+              for _ in clouds]
+    upright = [np.eye(3) for _ in clouds]
+    assert auto_descriptor(measure_sensor(clouds, tilted), DescriptorParams()).level
+    assert not auto_descriptor(measure_sensor(clouds, upright), DescriptorParams()).level
+
+
+def _quaternion(roll, pitch):
+    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    return np.array([sr * cp, cr * sp, -sr * sp, cr * cp])
+
+
+def test_auto_is_a_preset_that_stays_auto_until_resolved(world):
+    assert preset("auto").auto and not preset("kitti").auto
+    config = config_from_dict({"preset": "auto", "search": {"top_n": 4}})
+    assert config.auto and config.search.top_n == 4
+    resolved, _ = auto_config(_scans(world), config)
+    assert not resolved.auto and resolved.search.top_n == 4
+    with pytest.raises(ConfigError, match="auto"):
+        preset("autumn")
+    with pytest.raises(InvalidCloudError, match="auto"):
+        measure_sensor([np.full((10, 3), np.nan)])
+
+
+def test_build_map_with_auto_records_its_choice(world, tmp_path):
+    write_kitti_sequence(tmp_path / "seq", world, route(20), seed=3)
+    reference_map = build_map(open_source(tmp_path / "seq"), preset("auto"), progress=False)
+    choice = reference_map.metadata["auto"]
+    assert choice["preset"] == "auto"
+    ground = choice["sensor_profile"]["ground_below_sensor_m"]
+    assert ground == pytest.approx(1.7, abs=0.1)
+    assert reference_map.params.z_min == pytest.approx(0.5 - ground, abs=0.006)
+    assert reference_map.params != Config().descriptor
+    path = tmp_path / "auto.mfmap"
+    reference_map.save(path)
+    from mf_lpr_ros.map_store import ReferenceMap
+    assert ReferenceMap.load(path).metadata["auto"]["choice"] == choice["choice"]
+
+
+def test_density_images_cannot_be_measured(tmp_path):
+    from PIL import Image
+
+    (tmp_path / "imgs").mkdir()
+    Image.fromarray(np.zeros((151, 151), np.uint8)).save(tmp_path / "imgs" / "000000.png")
+    (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InvalidCloudError, match="density images"):
+        build_map(open_source(tmp_path), preset("auto"), progress=False)
+
+
+def test_live_map_builder_holds_scans_until_auto_is_derived(world):
+    builder = MapBuilder(preset("auto"), None)
+    rng = np.random.default_rng(2)
+    trajectory = route(SAMPLE_SCANS + 4)
+    for index, (x, y, yaw) in enumerate(trajectory[:SAMPLE_SCANS - 1]):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        assert builder.offer(PairedScan(index, float(index), points, pose)) is None
+    assert builder.waiting_for_auto and len(builder.map) == 0
+    for index, (x, y, yaw) in enumerate(trajectory[SAMPLE_SCANS - 1:], start=SAMPLE_SCANS - 1):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        builder.offer(PairedScan(index, float(index), points, pose))
+    assert not builder.waiting_for_auto
+    assert "preset auto" in builder.auto_choice
+    assert builder.map.params.z_min == pytest.approx(
+        0.5 - builder.map.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"], abs=0.006)
+    # Every scan moved >= 2 m: the held-back scans became references too, in order.
+    assert list(builder.map.source_indices) == list(range(len(trajectory)))
