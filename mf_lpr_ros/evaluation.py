@@ -15,6 +15,7 @@ record per query; summarise turns records into the metrics, computed the same wa
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -216,15 +217,19 @@ class ScanContextMethod:
 
 class MapClosuresMethod:
     """MapClosures (Gupta et al., the map-closures package): ORB features of BEV density maps in
-    an HBST tree, then RANSAC. Fed single scans here (the same input as the other methods; it
-    is built for local maps of many scans). Its pose is not used: the matched reference's
-    position is reported. Confidence: RANSAC inliers. Every closure it returns passed its own
-    RANSAC test, so each is published."""
+    an HBST tree, then RANSAC. Fed as its own pipeline feeds it: local maps, not single scans.
+    Each scan's local map holds the scans of the last local_map_m metres of travel (those the
+    protocol describes, up to and including it), put in that scan's frame with the sequence's
+    poses (its pipeline uses kiss-icp odometry instead) and voxelised at its density-map
+    resolution. Its pose is not used: the matched reference's position is reported.
+    Confidence: RANSAC inliers. Every closure it returns passed its own RANSAC test, so each
+    is published."""
 
     name = "MapClosures"
     candidates_asked = 50
 
-    def __init__(self, config: Config, density_map_resolution: float | None = None) -> None:
+    def __init__(self, config: Config, density_map_resolution: float | None = None,
+                 local_map_m: float = 10.0) -> None:
         try:
             from map_closures.config import MapClosuresConfig
             from map_closures.map_closures import MapClosures
@@ -233,12 +238,40 @@ class MapClosuresMethod:
                              f"(pip install map-closures): {error}") from error
         resolution = density_map_resolution or max(config.descriptor.voxel_size, 0.1)
         self.config = config
+        self.resolution = resolution
+        self.local_map_m = local_map_m
         self._closures = MapClosures(MapClosuresConfig(density_map_resolution=resolution))
         self._poses = np.zeros((0, 3))
         self._next_id = 0
+        self._recent: dict[bool, deque] = {True: deque(), False: deque()}
 
     def describe(self, scan: Scan, *, reference: bool) -> np.ndarray:
-        return points_for_baselines(scan, self.config).astype(np.float64)
+        points = self._voxelised(points_for_baselines(scan, self.config).astype(np.float64))
+        if scan.pose is None or not np.isfinite(scan.pose).all():
+            return points
+        recent = self._recent[reference]
+        travelled = 0.0
+        if recent:
+            travelled = recent[-1][0] + float(np.linalg.norm(scan.pose[:3, 3] -
+                                                             recent[-1][1][:3, 3]))
+        recent.append((travelled, scan.pose, points))
+        while travelled - recent[0][0] > self.local_map_m:
+            recent.popleft()
+        to_scan = np.linalg.inv(scan.pose)
+        return self._voxelised(np.concatenate([
+            cloud @ (to_scan @ pose)[:3, :3].T + (to_scan @ pose)[:3, 3]
+            for _, pose, cloud in recent]))
+
+    def _voxelised(self, points: np.ndarray) -> np.ndarray:
+        """One point per occupied voxel of the density-map resolution (as its VoxelMap)."""
+        if not len(points):
+            return points
+        keys = np.floor(points / self.resolution).astype(np.int64)
+        keys -= keys.min(axis=0)
+        span = keys.max(axis=0) + 1
+        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        _, first = np.unique(flat, return_index=True)
+        return points[np.sort(first)]
 
     def build(self, descriptors: list, poses: np.ndarray, stamps: np.ndarray) -> None:
         for points in descriptors:
