@@ -12,7 +12,7 @@ import json
 import math
 import os
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +49,8 @@ class Rule:
     cross: every reference against every query folder. ordered: every ordered pair of distinct
     folders within each group (a group is one pattern), queries restricted to the split named by
     query_split (a file under the root, '{group}' replaced by the group's folder name).
-    single: each folder's own loop closures."""
+    single: each folder's own loop closures. by_preset: the preset is appended to the pairs'
+    names (rules that run the same folders under different presets)."""
 
     kind: str
     preset: str
@@ -57,6 +58,7 @@ class Rule:
     references: tuple[str, ...] = ()
     queries: tuple[str, ...] = ()
     query_split: str | None = None
+    by_preset: bool = False
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,13 @@ def _label(root: Path, path: Path) -> str:
 
 
 def _rule_pairs(rule: Rule, root: Path) -> list[Pair]:
+    pairs = _untagged_pairs(rule, root)
+    if rule.by_preset:
+        pairs = [replace(pair, name=f"{pair.name} [{rule.preset}]") for pair in pairs]
+    return pairs
+
+
+def _untagged_pairs(rule: Rule, root: Path) -> list[Pair]:
     if rule.kind == "single":
         return [Pair(_label(root, path), path, None, rule.preset, rule.protocol)
                 for pattern in rule.references for path in _matches(root, pattern)]
@@ -210,6 +219,31 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
           _BEVPLACE_TUNING[0] + _BEVPLACE_HOLDOUT[0], _BEVPLACE_TUNING[1] + _BEVPLACE_HOLDOUT[1]),
     Suite("kitti-bevplace-00", _BEVPLACE_TEXT + "; 00 and 00_rot only (the tuning sequence)",
           *_BEVPLACE_TUNING),
+    Suite("real-holdout",
+          "The real held-out sets of ../shared/data/holdout (measure once, never tune): the Livox "
+          "Mid-360 campus loop's own loop closures (references >= 40 s older, 5 m) and the Livox "
+          "Avia site's session2 against a session1 map (3 m), each with preset auto and with the "
+          "named preset chosen for the sensor beforehand (default for the Mid-360, handheld for "
+          "the handheld Avia)",
+          (Rule("single", "auto", Protocol(5.0, exclude_recent_s=40.0),
+                ("holdout/campus_mid360_loop",), by_preset=True),
+           Rule("single", "default", Protocol(5.0, exclude_recent_s=40.0),
+                ("holdout/campus_mid360_loop",), by_preset=True),
+           Rule("cross", "auto", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
+                ("holdout/hku_avia_2sessions/session2",), by_preset=True),
+           Rule("cross", "handheld", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
+                ("holdout/hku_avia_2sessions/session2",), by_preset=True))),
+    Suite("real-tuning",
+          "The real tuning sets with preset auto beside the named preset: BALM handheld "
+          "(3 m, 50 frames apart) and the HKU Avia keyframes (5 m, 50 frames apart)",
+          (Rule("single", "auto", Protocol(3.0, exclude_recent_frames=50), ("balm_realworld",),
+                by_preset=True),
+           Rule("single", "handheld", Protocol(3.0, exclude_recent_frames=50),
+                ("balm_realworld",), by_preset=True),
+           Rule("single", "auto", Protocol(5.0, exclude_recent_frames=50), ("hku_mb_livox",),
+                by_preset=True),
+           Rule("single", "default", Protocol(5.0, exclude_recent_frames=50), ("hku_mb_livox",),
+                by_preset=True))),
     Suite("shared-data",
           "The development sets of ../shared/data (the acceptance table of issue 4): BALM "
           "handheld, HKU main building (Livox) and KITTI 00 BEV, single-sequence loop closures",

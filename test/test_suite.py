@@ -153,3 +153,15 @@ def test_shared_data_suite_table(data_dir, tmp_path):
     assert ours["recall_at_1_corrected"] > theirs["recall_at_1_corrected"] + 0.2
     assert by[("kitti_bev_00", "MF-LPR (ours)")]["rte_mean_m"] < 0.35
     assert np.isfinite(ours["ms_per_query"])
+
+
+def test_rules_by_preset_name_their_pairs_apart(tmp_path):
+    (tmp_path / "site" / "a").mkdir(parents=True)
+    protocol = Protocol(3.0)
+    suite = Suite("x", "", tuple(Rule("single", name, protocol, ("site/a",), by_preset=True)
+                                 for name in ("auto", "handheld")))
+    pairs = suite.pairs(tmp_path)
+    assert [(p.name, p.preset) for p in pairs] == [("site_a [auto]", "auto"),
+                                                   ("site_a [handheld]", "handheld")]
+    holdout = SUITES["real-holdout"].rules
+    assert {rule.preset for rule in holdout} >= {"auto"} and all(r.by_preset for r in holdout)
