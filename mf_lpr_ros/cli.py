@@ -55,6 +55,10 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     from .pipeline import build_map
 
     config = _config(args)
+    if args.global_map:
+        return _build_global_map(args, config)
+    if not args.source:
+        raise ValueError("build-map needs a SOURCE (scans with poses) or --global-map CLOUD")
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
     reference_map = build_map(sequence, config, keep_clouds=args.keep_clouds,
                               progress=not args.quiet)
@@ -63,6 +67,34 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         print(reference_map.metadata["auto"]["choice"])
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
           f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
+    return 0
+
+
+def _build_global_map(args: argparse.Namespace, config: Config) -> int:
+    from .global_map import RenderParams, build_global_map, read_trajectory
+
+    trajectory = read_trajectory(args.trajectory) if args.trajectory else None
+    render = RenderParams(spacing_m=args.spacing_m or RenderParams.spacing_m,
+                          sensor_height_m=args.sensor_height_m)
+    reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
+                                     render=render, progress=not args.quiet)
+    reference_map.save(args.out)
+    area = reference_map.metadata["grid_area_km2"]
+    print(f"wrote {args.out}: {len(reference_map)} references rendered from {args.global_map} "
+          f"on a {render.spacing_m} m grid over {area:.4f} km^2 (sensor "
+          f"{reference_map.metadata['sensor_height_m']:.2f} m above the ground, voxel "
+          f"{reference_map.params.voxel_size} m)")
+    return 0
+
+
+def cmd_accumulate(args: argparse.Namespace) -> int:
+    from .global_map import accumulate, write_pcd
+
+    sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
+    cloud = accumulate(sequence, args.voxel, progress=not args.quiet)
+    write_pcd(args.out, cloud)
+    print(f"wrote {args.out}: {len(cloud)} points from {len(sequence)} scans "
+          f"(one per {args.voxel} m voxel)")
     return 0
 
 
@@ -232,6 +264,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_global_demo(args: argparse.Namespace) -> int:
+    from . import global_demo
+
+    rows, facts = global_demo.run(progress=not args.quiet)
+    print(global_demo.format_table(rows, facts))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .ros import demo
 
@@ -254,14 +294,34 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
 
-    build = commands.add_parser("build-map", help="build a reference map from a sequence or bag")
-    build.add_argument("source", help=SOURCE_HELP)
+    build = commands.add_parser(
+        "build-map", help="build a reference map from a sequence or bag, or render one from a "
+        "global point-cloud map (--global-map)")
+    build.add_argument("source", nargs="?", help=SOURCE_HELP)
+    build.add_argument("--global-map", help="a global map (.pcd/.ply, world frame, z up): "
+                       "references rendered on a grid over its traversable area")
+    build.add_argument("--trajectory", help="with --global-map: the mapping run's poses (KITTI "
+                       "poses.txt or TUM), seeding the area and giving the sensor height")
+    build.add_argument("--sensor-height-m", type=float,
+                       help="with --global-map: the sensor's height above the ground "
+                            "(default: from --trajectory, else 1.8)")
     build.add_argument("--out", required=True, help="map file to write (atomically)")
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",
                        help="store reference clouds in the map (enables ICP refinement)")
     _add_common(build)
     build.set_defaults(handler=cmd_build_map)
+
+    accumulate = commands.add_parser(
+        "accumulate", help="a global map (binary PCD) from a posed sequence or bag")
+    accumulate.add_argument("source", help=SOURCE_HELP)
+    accumulate.add_argument("--out", required=True, help="PCD file to write (atomically)")
+    accumulate.add_argument("--voxel", type=float, default=0.2,
+                            help="keep one point per voxel of this size, m (default 0.2)")
+    accumulate.add_argument("--cloud-topic", help="PointCloud2 topic of a bag")
+    accumulate.add_argument("--pose-topic", help="Odometry/PoseStamped topic of a bag")
+    accumulate.add_argument("--quiet", action="store_true", help="no progress bars")
+    accumulate.set_defaults(handler=cmd_accumulate)
 
     localise = commands.add_parser("localise", help="match every scan of a source against a map")
     localise.add_argument("map", help="map file from build-map")
@@ -366,6 +426,12 @@ def build_parser() -> argparse.ArgumentParser:
     info = commands.add_parser("info", help="describe a map file")
     info.add_argument("map")
     info.set_defaults(handler=cmd_info)
+
+    global_demo = commands.add_parser(
+        "global-demo", help="relocalising off the mapping path in the simulator: a keyframe "
+        "map against a grid rendered from the global map (mf_lpr_ros/global_demo.py)")
+    global_demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    global_demo.set_defaults(handler=cmd_global_demo)
 
     demo = commands.add_parser(
         "demo", help="the whole system on simulated worlds, or on a real bag, through the nodes",

@@ -249,6 +249,55 @@ def _sphere_hits(spheres: np.ndarray, origin: np.ndarray, d: np.ndarray) -> np.n
     return np.where((disc >= 0) & (t > 0), t, np.inf)
 
 
+def scene_cloud(scene: Scene, spacing_m: float = 0.25, margin_m: float = 30.0) -> np.ndarray:
+    """The scene as a global point cloud (N, 3) float32, world frame: its surfaces sampled every
+    spacing_m (ground, cylinder sides, box walls and roofs, spheres), as a SLAM map of the
+    whole world would hold them."""
+    parts = [_cylinder_surface(c, spacing_m) for c in scene.cylinders]
+    parts += [_box_surface(b, spacing_m) for b in scene.boxes]
+    parts += [_sphere_surface(sp, spacing_m) for sp in scene.spheres]
+    objects = np.concatenate(parts) if parts else np.zeros((0, 3))
+    low = objects[:, :2].min(axis=0) - margin_m
+    high = objects[:, :2].max(axis=0) + margin_m
+    xs, ys = np.arange(low[0], high[0], spacing_m), np.arange(low[1], high[1], spacing_m)
+    ground = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    return np.concatenate([np.c_[ground, np.zeros(len(ground))], objects]).astype(np.float32)
+
+
+def _cylinder_surface(cylinder: np.ndarray, spacing: float) -> np.ndarray:
+    x, y, radius, height = cylinder
+    angle = np.arange(0.0, 2 * np.pi, max(spacing / radius, 0.05))
+    z = np.arange(0.0, height, spacing)
+    a, zz = np.meshgrid(angle, z)
+    return np.c_[x + radius * np.cos(a.ravel()), y + radius * np.sin(a.ravel()), zz.ravel()]
+
+
+def _box_surface(box: np.ndarray, spacing: float) -> np.ndarray:
+    x, y, half_x, half_y, yaw, height = box
+    u, v = np.arange(-half_x, half_x, spacing), np.arange(-half_y, half_y, spacing)
+    z = np.arange(0.0, height, spacing)
+    walls = [np.c_[np.repeat(u, len(z)), np.full(len(u) * len(z), side * half_y),
+                   np.tile(z, len(u))] for side in (-1, 1)]
+    walls += [np.c_[np.full(len(v) * len(z), side * half_x), np.repeat(v, len(z)),
+                    np.tile(z, len(v))] for side in (-1, 1)]
+    uu, vv = np.meshgrid(u, v)
+    walls.append(np.c_[uu.ravel(), vv.ravel(), np.full(uu.size, height)])
+    local = np.concatenate(walls)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.c_[x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1],
+                 local[:, 2]]
+
+
+def _sphere_surface(sphere: np.ndarray, spacing: float) -> np.ndarray:
+    x, y, z, radius = sphere
+    count = max(int(4 * np.pi * radius ** 2 / spacing ** 2), 8)
+    k = np.arange(count) + 0.5
+    polar = np.arccos(1 - 2 * k / count)
+    azimuth = np.pi * (1 + 5 ** 0.5) * k
+    return np.c_[x + radius * np.sin(polar) * np.cos(azimuth),
+                 y + radius * np.sin(polar) * np.sin(azimuth), z + radius * np.cos(polar)]
+
+
 def drive(waypoints: np.ndarray, step_m: float, lateral_offset_m: float = 0.0) -> np.ndarray:
     """(n, 3) x, y, yaw every step_m metres along a polyline, offset to the left of travel."""
     segment = np.hypot(*np.diff(waypoints, axis=0).T)

@@ -1,0 +1,133 @@
+"""Global point-cloud maps: accumulate, render references on a grid, relocalise off the path."""
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.cli import main
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.datasets import DatasetError, open_source
+from mf_lpr_ros.descriptor import InvalidCloudError, describe_points
+from mf_lpr_ros.global_map import (GLOBAL_MAP_KIND, RenderParams, TiledCloud, accumulate,
+                                   build_global_map, ground_grid, read_global_cloud,
+                                   reference_positions, render_view, write_pcd)
+from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.search import MatchedFilterIndex
+from mf_lpr_ros.simulator import cast, drive, scene_cloud, urban_traversals
+from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw, wrap_angle
+
+CONFIG = preset("kitti")
+SIM_RENDER = RenderParams(elevation_deg=(-15.0, 15.0))
+
+
+@pytest.fixture(scope="module")
+def town():
+    """The simulator's town, its cloud cropped to the bottom street, and scans along it."""
+    traversals = urban_traversals()
+    cloud = scene_cloud(traversals.scene)
+    crop = cloud[(np.abs(cloud[:, 1]) < 35) & (cloud[:, 0] > -25) & (cloud[:, 0] < 125)]
+    return traversals, crop
+
+
+def _pose(x, y, yaw, height=1.8):
+    return pose_matrix(np.array([x, y, height]), quaternion_from_yaw(yaw))
+
+
+def _scan(traversals, x, y, yaw, seed=0):
+    return cast(traversals.scene, traversals.sensor, _pose(x, y, yaw), np.random.default_rng(seed))
+
+
+def test_a_rendered_view_correlates_with_the_scan_as_well_as_a_neighbouring_keyframe(town):
+    traversals, _ = town
+    # A mapping run every 2 m along the street, accumulated into a global map.
+    stations = np.arange(-10.0, 112.0, 2.0)
+    clouds = [_scan(traversals, x, 0.0, 0.0, seed=k) for k, x in enumerate(stations)]
+    accumulated = np.concatenate([cloud + np.array([x, 0.0, 1.8], dtype=np.float32)
+                                  for cloud, x in zip(clouds, stations)])
+    tiled = TiledCloud(accumulated, 32.0)
+    params = CONFIG.descriptor
+    try:
+        rendered_scores, keyframe_scores = [], []
+        for k in (20, 32, 45):
+            query = describe_points(clouds[k], params)
+            rendered = describe_points(render_view(tiled, np.array([stations[k], 0.0]), 0.0,
+                                                   params, SIM_RENDER, 1.8), params,
+                                       reference=True)
+            keyframe = describe_points(clouds[k + 1], params, reference=True)
+            for reference, pose, scores in ((rendered, _pose(stations[k], 0.0, 0.0),
+                                             rendered_scores),
+                                            (keyframe, _pose(stations[k + 1], 0.0, 0.0),
+                                             keyframe_scores)):
+                reference_map = ReferenceMap(params)
+                reference_map.append(reference, pose, 0.0)
+                scores.append(MatchedFilterIndex(reference_map, CONFIG.search).query(query)
+                              .confidence)
+        assert np.mean(rendered_scores) >= np.mean(keyframe_scores)
+    finally:
+        tiled.close()
+
+
+def test_global_grid_relocalises_lanes_the_mapping_run_never_drove(town):
+    traversals, cloud = town
+    mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(-10.0, 110.0, 2.0)])
+    global_map = build_global_map("town.pcd", CONFIG, trajectory=mapping, points=cloud,
+                                  render=SIM_RENDER, progress=False)
+    assert global_map.metadata["kind"] == GLOBAL_MAP_KIND
+    assert global_map.metadata["sensor_height_m"] == pytest.approx(1.8, abs=0.05)
+    index = MatchedFilterIndex(global_map, CONFIG.search)
+    lanes = np.vstack([drive(np.array([[20.0, 0.0], [90.0, 0.0]]), 10.0, lateral_offset_m=off)
+                       for off in (5.5, -6.5)])
+    good = 0
+    for k, (x, y, yaw) in enumerate(lanes):
+        match = index.query(describe_points(_scan(traversals, x, y, yaw, seed=k), CONFIG.descriptor))
+        error = np.hypot(match.pose[0] - x, match.pose[1] - y)
+        good += error < 0.5 and abs(np.degrees(wrap_angle(match.pose[2] - yaw))) < 2.0
+    assert good >= 0.8 * len(lanes)
+
+
+def test_the_area_grows_from_the_trajectory_through_free_space_only():
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(0, 60, (40000, 2)), np.zeros(40000)]
+    # A wall across x = 30 splits the ground in two.
+    wall = np.c_[np.full(3000, 30.0), rng.uniform(0, 60, 3000), rng.uniform(0, 3, 3000)]
+    grid = ground_grid(np.vstack([ground, wall]).astype(np.float32), 1.0, (0.4, 2.0))
+    seeded = reference_positions(grid, 2.0, np.array([[5.0, 5.0], [10.0, 30.0]]))
+    assert len(seeded) and seeded[:, 0].max() < 30.0 and seeded[:, 0].min() < 3.0
+    everywhere = reference_positions(grid, 2.0)
+    assert everywhere[:, 0].max() > 50.0
+
+
+def test_accumulate_writes_a_map_the_renderer_reads(tmp_path, world):
+    from mf_lpr_ros.synthetic import route, write_kitti_sequence
+
+    write_kitti_sequence(tmp_path / "seq", world, route(12), seed=1)
+    assert main(["accumulate", str(tmp_path / "seq"), "--out", str(tmp_path / "map.pcd"),
+                 "--voxel", "0.3", "--quiet"]) == 0
+    cloud = read_global_cloud(tmp_path / "map.pcd")
+    direct = accumulate(open_source(tmp_path / "seq"), 0.3, progress=False)
+    assert len(cloud) == len(direct) > 1000
+    keys = np.unique(np.floor(cloud / 0.3).astype(np.int64), axis=0)
+    assert len(keys) == len(cloud)                       # one point per voxel
+    assert main(["build-map", "--global-map", str(tmp_path / "map.pcd"), "--trajectory",
+                 str(tmp_path / "seq" / "poses.txt"), "--out", str(tmp_path / "g.mfmap"),
+                 "--preset", "kitti", "--quiet"]) == 0
+    reference_map = ReferenceMap.load(tmp_path / "g.mfmap")
+    assert reference_map.metadata["kind"] == GLOBAL_MAP_KIND and len(reference_map) > 50
+
+
+def test_bad_global_clouds_are_refused_by_name(tmp_path):
+    write_pcd(tmp_path / "nan.pcd", np.full((10, 3), np.nan, dtype=np.float32))
+    with pytest.raises(InvalidCloudError, match="no finite point"):
+        read_global_cloud(tmp_path / "nan.pcd")
+    (tmp_path / "cut.pcd").write_bytes((tmp_path / "nan.pcd").read_bytes()[:-20])
+    with pytest.raises(DatasetError, match="truncated"):
+        read_global_cloud(tmp_path / "cut.pcd")
+    (tmp_path / "map.xyz").write_text("1 2 3\n")
+    with pytest.raises(DatasetError, match=".pcd or .ply"):
+        read_global_cloud(tmp_path / "map.xyz")
+    assert main(["build-map", "--global-map", str(tmp_path / "nan.pcd"), "--out",
+                 str(tmp_path / "m.mfmap")]) == 2
+    assert not (tmp_path / "m.mfmap").exists()
+    flat = np.c_[np.random.default_rng(0).uniform(0, 5, (200, 2)), np.zeros(200)]
+    with pytest.raises(ValueError, match="auto"):
+        build_global_map("x.pcd", preset("auto"), points=flat.astype(np.float32),
+                         progress=False)
