@@ -6,12 +6,20 @@
 Subscribes `points` (PointCloud2) and `odom` (Odometry) or `pose` (PoseStamped /
 PoseWithCovarianceStamped); pairs each scan with the pose interpolated at its stamp; keeps one
 every spacing_m metres; saves the map atomically every save_period_s and at shutdown.
+
+With global_map_topic set (e.g. `map`, as map servers and LIO stacks publish their cloud:
+reliable, transient local), it instead waits for one global point-cloud map on that topic and
+writes a grid of references rendered from it (mf_lpr_ros/global_map.py), in a worker thread so
+the node stays responsive; a later map on the topic rebuilds it.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
+
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
 from sensor_msgs.msg import PointCloud2
 
@@ -22,6 +30,11 @@ from ..map_store import MapFileError, ReferenceMap
 from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
 
 IF_EXISTS = ("error", "append", "overwrite")
+# As map servers publish a map: reliable and transient local, so a map published before this
+# node started still arrives.
+GLOBAL_MAP_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
+                            reliability=QoSReliabilityPolicy.RELIABLE,
+                            durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class MapBuilderNode(LidarNode):
@@ -56,6 +69,12 @@ class MapBuilderNode(LidarNode):
             "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
             "(0 = no check)", lambda v: v >= 0, ">= 0")
         reliable = self.declare_reliable_qos()
+        self.global_map_topic = self.typed_parameter(
+            "global_map_topic", "", "a PointCloud2 global map topic (transient local) to render "
+            "a reference grid from, instead of building from scans ('' = off)")
+        self.sensor_height_m = self.typed_parameter(
+            "sensor_height_m", 1.8, "with global_map_topic: the sensor's height above the "
+            "ground", lambda v: v > 0, "> 0")
         self.freeze_parameters()
 
         path = Path(map_path)
@@ -69,6 +88,9 @@ class MapBuilderNode(LidarNode):
         if not os.access(path.parent if str(path.parent) else Path("."), os.W_OK):
             self.get_logger().error(f"the folder of map_path {path} is not writable; the map is "
                                     "kept in memory and saves will be retried")
+        if self.global_map_topic:
+            self._start_global_map_mode(config, path)
+            return
         self.builder = MapBuilder(config, path, keep_clouds=keep_clouds, reference_map=existing,
                                   sensor_frame_id=self.sensor_frame_id,
                                   frame_id=self.map_frame_id or "map")
@@ -84,6 +106,58 @@ class MapBuilderNode(LidarNode):
             f"building {path} ({'appending to ' + str(len(existing)) + ' references' if existing else 'new map'}): "
             f"voxel {self._voxel_text()}, spacing {config.spacing_m} m, poses from "
             f"'{POSE_SOURCES[self.pose_source][0]}'")
+
+    def _start_global_map_mode(self, config, path: Path) -> None:
+        if config.auto:
+            raise ParameterFault("parameter preset: auto measures scans; a global map has none, "
+                                 "so name a preset with global_map_topic")
+        self.builder = None
+        self._global_config, self._global_path = config, path
+        self._global_worker: threading.Thread | None = None
+        self.global_maps_built = 0
+        self.create_subscription(PointCloud2, self.global_map_topic, self._on_global_map,
+                                 GLOBAL_MAP_QOS)
+        self.get_logger().info(
+            f"waiting for a global map on '{self.global_map_topic}' to render {path} "
+            f"(spacing {config.spacing_m} m, sensor {self.sensor_height_m} m above the ground)")
+
+    def _on_global_map(self, message: PointCloud2) -> None:
+        from ..live import decode_points
+
+        if self._global_worker is not None and self._global_worker.is_alive():
+            self.log_problem("global_map", "a global map arrived while the last one is still "
+                             "being rendered; it is ignored")
+            return
+        try:
+            points = decode_points(message, max_points=500_000_000)
+        except (InvalidCloudError, ValueError, TypeError) as error:
+            self.counters["global_maps_rejected"] += 1
+            self.log_problem("global_map", f"global map rejected: {error}")
+            return
+        frame = message.header.frame_id or self.map_frame_id or "map"
+        self._global_worker = threading.Thread(target=self._render_global_map,
+                                               args=(points, frame), daemon=True)
+        self._global_worker.start()
+
+    def _render_global_map(self, points, frame: str) -> None:
+        from ..global_map import RenderParams, build_global_map
+
+        render = RenderParams(spacing_m=self._global_config.spacing_m,
+                              sensor_height_m=self.sensor_height_m)
+        try:
+            reference_map = build_global_map(f"topic {self.global_map_topic}",
+                                             self._global_config, points=points, render=render,
+                                             progress=False)
+            reference_map.frame_id = self.map_frame_id or frame
+            reference_map.save(self._global_path)
+        except (InvalidCloudError, ValueError, OSError, MapFileError) as error:
+            self.counters["global_maps_rejected"] += 1
+            self.get_logger().error(f"global map not rendered: {error}")
+            return
+        self.global_maps_built += 1
+        self.get_logger().info(
+            f"rendered {len(reference_map)} references from a {len(points)}-point global map "
+            f"to {self._global_path}")
 
     def _on_scan(self, message: PointCloud2) -> None:
         decoded = self.decode_scan(message, self.max_points, self.sensor_frame_id,
@@ -143,6 +217,10 @@ class MapBuilderNode(LidarNode):
         return True
 
     def finish(self) -> None:
+        if self.builder is None:
+            if self._global_worker is not None:
+                self._global_worker.join()
+            return
         self._pair(final=True)
         if self.builder.waiting_for_auto:
             try:
