@@ -265,6 +265,18 @@ def auto_voxel_size(point_clouds: list[np.ndarray]) -> float:
                                                  for c in point_clouds])))
 
 
+def one_point_per_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The first point of each occupied voxel_m voxel, in the points' order."""
+    if not len(points):
+        return points
+    keys = np.floor(np.asarray(points)[:, :3] / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first = np.unique(flat, return_index=True)
+    return points[np.sort(first)]
+
+
 def occupied_unit_voxels(cloud: np.ndarray) -> int:
     """Occupied 1 m voxels of one scan (finite points only)."""
     xyz = np.asarray(cloud)[:, :3]

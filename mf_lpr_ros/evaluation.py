@@ -26,6 +26,7 @@ from .progress import progress_bar
 from .config import Config
 from .datasets import Scan, Sequence
 from .datasets.base import nearest_keys
+from .descriptor import one_point_per_voxel
 from .map_store import ReferenceMap
 from .pipeline import describe_scan, prepared_points, record_sensor_offset, select_references
 from .pose import planar, wrap_angle
@@ -246,7 +247,8 @@ class MapClosuresMethod:
         self._recent: dict[bool, deque] = {True: deque(), False: deque()}
 
     def describe(self, scan: Scan, *, reference: bool) -> np.ndarray:
-        points = self._voxelised(points_for_baselines(scan, self.config).astype(np.float64))
+        points = one_point_per_voxel(points_for_baselines(scan, self.config).astype(np.float64),
+                                     self.resolution)
         if scan.pose is None or not np.isfinite(scan.pose).all():
             return points
         recent = self._recent[reference]
@@ -258,20 +260,9 @@ class MapClosuresMethod:
         while travelled - recent[0][0] > self.local_map_m:
             recent.popleft()
         to_scan = np.linalg.inv(scan.pose)
-        return self._voxelised(np.concatenate([
+        return one_point_per_voxel(np.concatenate([
             cloud @ (to_scan @ pose)[:3, :3].T + (to_scan @ pose)[:3, 3]
-            for _, pose, cloud in recent]))
-
-    def _voxelised(self, points: np.ndarray) -> np.ndarray:
-        """One point per occupied voxel of the density-map resolution (as its VoxelMap)."""
-        if not len(points):
-            return points
-        keys = np.floor(points / self.resolution).astype(np.int64)
-        keys -= keys.min(axis=0)
-        span = keys.max(axis=0) + 1
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, first = np.unique(flat, return_index=True)
-        return points[np.sort(first)]
+            for _, pose, cloud in recent]), self.resolution)
 
     def build(self, descriptors: list, poses: np.ndarray, stamps: np.ndarray) -> None:
         for points in descriptors:

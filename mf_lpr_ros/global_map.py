@@ -30,7 +30,7 @@ from .config import Config, DescriptorParams
 from .datasets.base import DatasetError, Sequence, read_kitti_poses, read_tum_poses
 from .datasets.pcd import read_pcd
 from .datasets.ply import read_ply
-from .descriptor import InvalidCloudError, describe_points
+from .descriptor import InvalidCloudError, describe_points, one_point_per_voxel
 from .map_store import ReferenceMap
 from .progress import progress_bar
 
@@ -147,23 +147,12 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
         points = points[np.isfinite(points).all(axis=1)]
         batch.append((points @ scan.pose[:3, :3].T + scan.pose[:3, 3]).astype(np.float32))
         if len(batch) >= flush_every:
-            merged = _one_per_voxel(np.concatenate([merged, *batch]), voxel_m)
+            merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
             batch = []
-    merged = _one_per_voxel(np.concatenate([merged, *batch]), voxel_m)
+    merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
     if not len(merged):
         raise InvalidCloudError(f"{sequence.name}: no finite point to accumulate")
     return merged
-
-
-def _one_per_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    if not len(points):
-        return points
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, first = np.unique(flat, return_index=True)
-    return points[np.sort(first)]
 
 
 class TiledCloud:
@@ -333,7 +322,7 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     grounds = grid.ground_at(positions)
     params = config.descriptor
     # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
-    cloud = TiledCloud(_one_per_voxel(points, params.voxel_size / 2), render.tile_m)
+    cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m)
     reference_map = ReferenceMap(params, metadata={
         "kind": GLOBAL_MAP_KIND, "source": str(cloud_path), "spacing_m": render.spacing_m,
         "sensor_height_m": height, "cloud_points": int(len(points)),
