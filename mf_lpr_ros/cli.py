@@ -267,7 +267,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_global_demo(args: argparse.Namespace) -> int:
     from . import global_demo
 
-    rows, facts = global_demo.run(progress=not args.quiet)
+    rows, facts = global_demo.run(args.source, progress=not args.quiet)
     print(global_demo.format_table(rows, facts))
     return 0
 
@@ -430,6 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
     global_demo = commands.add_parser(
         "global-demo", help="relocalising off the mapping path in the simulator: a keyframe "
         "map against a grid rendered from the global map (mf_lpr_ros/global_demo.py)")
+    global_demo.add_argument("--source", default="drive", choices=["drive", "world"],
+                             help="the global cloud: the mapping drive's scans accumulated "
+                                  "(default), or the whole world's surfaces")
     global_demo.add_argument("--quiet", action="store_true", help="no progress bars")
     global_demo.set_defaults(handler=cmd_global_demo)
 
