@@ -75,7 +75,8 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
 
     trajectory = read_trajectory(args.trajectory) if args.trajectory else None
     render = RenderParams(spacing_m=args.spacing_m or RenderParams.spacing_m,
-                          sensor_height_m=args.sensor_height_m)
+                          sensor_height_m=args.sensor_height_m,
+                          horizontal_fov_deg=args.horizontal_fov_deg)
     reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
                                      render=render, progress=not args.quiet)
     reference_map.save(args.out)
@@ -305,6 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--sensor-height-m", type=float,
                        help="with --global-map: the sensor's height above the ground "
                             "(default: from --trajectory, else 1.8)")
+    build.add_argument("--horizontal-fov-deg", type=float, default=360.0,
+                       help="with --global-map: the sensor's horizontal field of view; below "
+                            "360 (e.g. 70 for a Livox Avia) references face several headings, "
+                            "each with only its wedge")
     build.add_argument("--out", required=True, help="map file to write (atomically)")
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",

@@ -18,6 +18,7 @@ tiles it overlaps and a map of a few km^2 builds on a workstation.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from dataclasses import dataclass
@@ -48,7 +49,10 @@ class RenderParams:
     sensor's angular resolution: one return, the nearest, per direction bin (what a LiDAR
     records: a facade as sparse rings, nothing behind it); match elevation_bin_deg to the
     sensor's beam spacing. elevation_deg: its vertical field of view (lowest, highest beam;
-    None: unlimited). tile_m: side of the tiles of the memory-mapped cloud.
+    None: unlimited). horizontal_fov_deg: below 360 (a forward-looking sensor, e.g. a Livox
+    Avia's 70), each position gets references facing several headings (RenderParams.headings),
+    each holding only that wedge: a 70-degree scan does not resemble a 360-degree view.
+    tile_m: side of the tiles of the memory-mapped cloud.
     """
 
     spacing_m: float = 2.0
@@ -58,9 +62,22 @@ class RenderParams:
     azimuth_bins: int = 720
     elevation_bin_deg: float = 2.0
     elevation_deg: tuple[float, float] | None = None
+    horizontal_fov_deg: float = 360.0
     tile_m: float = 32.0
 
+    def headings(self) -> np.ndarray:
+        """Yaws (rad) of the references rendered at each position: 0 alone for a 360-degree
+        sensor; for a narrower one, every half field of view round the circle, so any heading
+        is within a quarter field of view of a rendered one."""
+        if self.horizontal_fov_deg >= 360:
+            return np.zeros(1)
+        count = math.ceil(360.0 / (self.horizontal_fov_deg / 2))
+        return np.arange(count) * (2 * np.pi / count)
+
     def __post_init__(self) -> None:
+        if not 0 < self.horizontal_fov_deg <= 360:
+            raise ValueError(f"global map parameter horizontal_fov_deg must be in (0, 360], got "
+                             f"{self.horizontal_fov_deg!r}")
         for name in ("spacing_m", "ground_cell_m", "elevation_bin_deg", "tile_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"global map parameter {name} must be > 0, got "
@@ -294,6 +311,19 @@ def render_view(cloud: TiledCloud, position: np.ndarray, ground_z: float,
     return local[order[first]]
 
 
+def _facing(view: np.ndarray, heading: float, fov_deg: float) -> np.ndarray:
+    """The part of a yaw-0 view a sensor facing heading (rad) with this horizontal field of
+    view sees, in that sensor's frame."""
+    if fov_deg >= 360:
+        return view
+    c, s = np.cos(heading), np.sin(heading)
+    turned = view.copy()
+    turned[:, 0] = c * view[:, 0] + s * view[:, 1]
+    turned[:, 1] = -s * view[:, 0] + c * view[:, 1]
+    off_axis = np.degrees(np.abs(np.arctan2(turned[:, 1], turned[:, 0])))
+    return turned[off_axis <= fov_deg / 2]
+
+
 def build_global_map(cloud_path: str | Path, config: Config, *,
                      trajectory: np.ndarray | None = None,
                      render: RenderParams = RenderParams(), progress: bool = True,
@@ -323,6 +353,7 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     params = config.descriptor
     # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
     cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m)
+    headings = render.headings()
     reference_map = ReferenceMap(params, metadata={
         "kind": GLOBAL_MAP_KIND, "source": str(cloud_path), "spacing_m": render.spacing_m,
         "sensor_height_m": height, "cloud_points": int(len(points)),
@@ -332,13 +363,19 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                                   desc="render references", enabled=progress, unit="ref"):
             view = render_view(cloud, positions[index], float(grounds[index]), params,
                                render, height)
-            try:
-                occupancy = describe_points(view, params, reference=True, seed_key=index)
-            except InvalidCloudError:
-                continue
-            pose = np.eye(4)
-            pose[:3, 3] = [positions[index, 0], positions[index, 1], grounds[index] + height]
-            reference_map.append(occupancy, pose, 0.0, index)
+            for heading in headings:
+                seen = _facing(view, heading, render.horizontal_fov_deg)
+                try:
+                    occupancy = describe_points(seen, params, reference=True,
+                                                seed_key=len(reference_map))
+                except InvalidCloudError:
+                    continue
+                pose = np.eye(4)
+                pose[:2, :2] = [[np.cos(heading), -np.sin(heading)],
+                                [np.sin(heading), np.cos(heading)]]
+                pose[:3, 3] = [positions[index, 0], positions[index, 1],
+                               grounds[index] + height]
+                reference_map.append(occupancy, pose, 0.0, index)
     finally:
         cloud.close()
     if not len(reference_map):

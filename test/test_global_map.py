@@ -154,3 +154,23 @@ def test_map_builder_renders_a_latched_global_map_topic(ros_graph, world, tmp_pa
     saved = ReferenceMap.load(map_path)
     assert saved.metadata["kind"] == GLOBAL_MAP_KIND and saved.frame_id == "map"
     assert len(saved) > 20 and saved.metadata["sensor_height_m"] == 1.7
+
+
+def test_a_narrow_field_of_view_renders_wedges_facing_round_the_circle(town):
+    traversals, cloud = town
+    render = RenderParams(spacing_m=6.0, horizontal_fov_deg=70.0)
+    headings = render.headings()
+    assert len(headings) == 11 and np.diff(headings).max() <= np.radians(35.0) + 1e-9
+    mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(20.0, 60.0, 2.0)])
+    wide = build_global_map("town.pcd", CONFIG, trajectory=mapping, points=cloud,
+                            render=RenderParams(spacing_m=6.0), progress=False)
+    narrow = build_global_map("town.pcd", CONFIG, trajectory=mapping, points=cloud,
+                              render=render, progress=False)
+    assert len(narrow) > 5 * len(wide)
+    yaws = np.arctan2(narrow.poses[:, 1, 0], narrow.poses[:, 0, 0]) % (2 * np.pi)
+    assert np.allclose(np.unique(np.round(yaws, 6)), np.round(headings, 6))
+    # A wedge holds fewer cells than the full view, all within the field of view.
+    first = narrow.occupancy(0)
+    rows, cols = np.nonzero(first)
+    off_axis = np.degrees(np.abs(np.arctan2(rows - 59.5, cols - 59.5)))
+    assert first.sum() < wide.occupancy(0).sum() and off_axis.max() <= 35.0 + 3.0
