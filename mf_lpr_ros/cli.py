@@ -6,6 +6,7 @@ Run `mf-lpr SUBCOMMAND --help` for each tool's options.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
@@ -18,6 +19,7 @@ import numpy as np
 from .config import PRESET_NAMES, Config, ConfigError, load_config, preset
 from .datasets import DatasetError, open_source
 from .descriptor import InvalidCloudError
+from .distributed import UnitFailure
 from .evaluation import METHODS
 from .map_store import MapFileError, ReferenceMap
 from .pose_graph import MissingDependencyError
@@ -41,6 +43,14 @@ def _config(args: argparse.Namespace) -> Config:
     return base
 
 
+def _add_scheduler(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scheduler", help="run the work units on Dask distributed: 'local' "
+                        "(a cluster of processes on this machine) or a scheduler ADDRESS "
+                        "(tcp://host:8786); default: serial")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="with --scheduler local: worker processes (default 2)")
+
+
 def _add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", choices=PRESET_NAMES,
                         help="parameter preset; auto derives the descriptor from the scans "
@@ -57,8 +67,11 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     config = _config(args)
     if args.global_map:
         return _build_global_map(args, config)
+    if args.sources:
+        return _build_maps(args, config)
     if not args.source:
-        raise ValueError("build-map needs a SOURCE (scans with poses) or --global-map CLOUD")
+        raise ValueError("build-map needs a SOURCE (scans with poses), --sources A B ... or "
+                         "--global-map CLOUD")
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
     reference_map = build_map(sequence, config, keep_clouds=args.keep_clouds,
                               progress=not args.quiet)
@@ -67,6 +80,40 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         print(reference_map.metadata["auto"]["choice"])
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
           f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
+    return 0
+
+
+@contextlib.contextmanager
+def _cluster(args: argparse.Namespace):
+    """The Dask client --scheduler asks for, or None (serial)."""
+    if not getattr(args, "scheduler", None):
+        yield None
+        return
+    from .distributed import dask_client
+
+    with dask_client(args.scheduler, args.workers) as client:
+        yield client
+
+
+def _build_maps(args: argparse.Namespace, config: Config) -> int:
+    from .bulk import SourceSpec, build_maps
+
+    if args.source:
+        raise ValueError("give the sources either as SOURCE or as --sources, not both")
+    specs = [SourceSpec(path, args.cloud_topic, args.pose_topic) for path in args.sources]
+    with _cluster(args) as client:
+        maps = build_maps(specs, config, combine=not args.one_map_each,
+                          keep_clouds=args.keep_clouds, client=client, progress=not args.quiet)
+    if args.one_map_each:
+        out_dir = Path(args.out)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for spec, reference_map in zip(specs, maps):
+            path = out_dir / f"{Path(spec.path).name}.mfmap"
+            reference_map.save(path)
+            print(f"wrote {path}: {len(reference_map)} references")
+    else:
+        maps[0].save(args.out)
+        print(f"wrote {args.out}: {len(maps[0])} references from {len(specs)} sources")
     return 0
 
 
@@ -226,8 +273,9 @@ def cmd_suite(args: argparse.Namespace) -> int:
         raise ValueError(f"unknown suite {args.name!r}; choose one of {sorted(SUITES)}")
     if not args.root:
         raise ValueError("suite needs --root, the folder holding the preset's sequences")
-    rows = run_suite(SUITES[args.name], Path(args.root), Path(args.out),
-                     methods=args.methods, progress=not args.quiet)
+    with _cluster(args) as client:
+        rows = run_suite(SUITES[args.name], Path(args.root), Path(args.out),
+                         methods=args.methods, progress=not args.quiet, client=client)
     print(format_table(rows))
     print(f"\nwrote {args.out}/results.csv, results.json, table.md and figures")
     return 0
@@ -299,6 +347,11 @@ def build_parser() -> argparse.ArgumentParser:
         "build-map", help="build a reference map from a sequence or bag, or render one from a "
         "global point-cloud map (--global-map)")
     build.add_argument("source", nargs="?", help=SOURCE_HELP)
+    build.add_argument("--sources", nargs="+", help="many sources: one map of them all at "
+                       "--out, or one map each in the folder --out with --one-map-each")
+    build.add_argument("--one-map-each", action="store_true",
+                       help="with --sources: --out is a folder, one SOURCE_NAME.mfmap per source")
+    _add_scheduler(build)
     build.add_argument("--global-map", help="a global map (.pcd/.ply, world frame, z up): "
                        "references rendered on a grid over its traversable area")
     build.add_argument("--trajectory", help="with --global-map: the mapping run's poses (KITTI "
@@ -408,6 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("--methods", nargs="+", choices=METHOD_KEYS,
                        help=f"methods (default: {' '.join(DEFAULT_METHODS)})")
     suite.add_argument("--list", action="store_true", help="list the presets and exit")
+    _add_scheduler(suite)
     suite.add_argument("--quiet", action="store_true", help="no progress bars")
     suite.set_defaults(handler=cmd_suite)
 
@@ -467,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.handler(args)
     except (ConfigError, DatasetError, MapFileError, InvalidCloudError, MissingDependencyError,
-            ValueError) as error:
+            UnitFailure, ValueError) as error:
         print(f"mf-lpr {args.command}: error: {error}", file=sys.stderr)
         return 2
 

@@ -63,7 +63,7 @@ class ReferenceMap:
         self.sensor_frame_id = sensor_frame_id
         self.metadata = dict(metadata or {})
         n_bytes = params.size * params.size // 8
-        self.occupancy_bits = np.zeros((0, n_bytes), dtype=np.uint8)
+        self._occupancy_bits = np.zeros((0, n_bytes), dtype=np.uint8)
         self._poses = np.zeros((0, 4, 4))
         self._stamps = np.zeros(0)
         self._source_indices = np.zeros(0, dtype=np.int64)
@@ -74,6 +74,12 @@ class ReferenceMap:
     def __len__(self) -> int:
         self._flush_pending()
         return len(self._stamps)
+
+    @property
+    def occupancy_bits(self) -> np.ndarray:
+        """(n, D*D/8) packed occupancy of every reference, those just appended included."""
+        self._flush_pending()
+        return self._occupancy_bits
 
     @property
     def poses(self) -> np.ndarray:
@@ -130,7 +136,7 @@ class ReferenceMap:
             return
         packed, poses, stamps, sources, clouds = zip(*self._pending)
         self._pending = []
-        self.occupancy_bits = np.concatenate([self.occupancy_bits, np.stack(packed)])
+        self._occupancy_bits = np.concatenate([self._occupancy_bits, np.stack(packed)])
         self._poses = np.concatenate([self._poses, np.stack(poses)])
         self._stamps = np.concatenate([self._stamps, np.array(stamps)])
         self._source_indices = np.concatenate([self._source_indices,
@@ -264,7 +270,7 @@ class ReferenceMap:
                             ("stamps", (n_refs,)), ("source_indices", (n_refs,))):
             if name not in loaded or loaded[name].shape != shape:
                 raise MapFileError(f"{path}: array {name!r} missing or of the wrong shape")
-        reference_map.occupancy_bits = loaded["occupancy_bits"]
+        reference_map._occupancy_bits = loaded["occupancy_bits"]
         reference_map._poses = loaded["poses"]
         reference_map._stamps = loaded["stamps"]
         reference_map._source_indices = loaded["source_indices"]

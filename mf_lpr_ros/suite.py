@@ -257,8 +257,12 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
 
 
 def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bool = True,
-              figures: bool = True) -> list[dict]:
-    """Runs (or resumes) a suite; returns one row per pair and method plus per-method means."""
+              figures: bool = True, client=None) -> list[dict]:
+    """Runs (or resumes) a suite; returns one row per pair and method plus per-method means.
+
+    client: a distributed.Client (mf_lpr_ros/distributed.py): each (pair, method) run still to
+    do becomes one unit on its cluster; results are the serial run's.
+    """
     methods = list(methods or DEFAULT_METHODS)
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -267,21 +271,29 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
     out = Path(out)
     (out / "pairs").mkdir(parents=True, exist_ok=True)
     results: dict[tuple[str, str], PairResult] = {}
-    jobs = [(pair, method) for pair in pairs for method in methods]
-    bar = progress_bar(jobs, desc=suite.name, enabled=progress, unit="run")
-    for pair, method in bar:
-        bar.set_postfix_str(f"{pair.name} {method}")
-        path = out / "pairs" / f"{pair.name}__{method}.json"
-        fingerprint = _fingerprint(pair, method)
-        saved = _load_saved(path, fingerprint)
-        if saved is None:
-            reference = open_source(pair.reference)
-            query = open_source(pair.query) if pair.query is not None else None
-            stamps = np.array(pair.query_stamps) if pair.query_stamps is not None else None
-            saved = evaluate_pair(reference, preset(pair.preset), pair.protocol, query=query,
-                                  query_stamps=stamps, method=method, progress=False)
-            write_json_atomic(path, {"fingerprint": fingerprint, **saved.to_dict()})
-        results[(pair.name, method)] = saved
+    to_run = []
+    for pair in pairs:
+        for method in methods:
+            path = out / "pairs" / f"{pair.name}__{method}.json"
+            saved = _load_saved(path, _fingerprint(pair, method))
+            if saved is None:
+                to_run.append((pair, method, path))
+            else:
+                results[(pair.name, method)] = saved
+    if client is None:
+        bar = progress_bar(to_run, desc=suite.name, enabled=progress, unit="run")
+        for pair, method, path in bar:
+            bar.set_postfix_str(f"{pair.name} {method}")
+            results[(pair.name, method)] = run_unit(pair, method, path)
+    else:
+        from .distributed import run_units
+
+        done = run_units(client, run_unit,
+                         [(f"{pair.name}__{method}", (pair, method, path))
+                          for pair, method, path in to_run],
+                         progress=progress, description=suite.name)
+        for pair, method, _ in to_run:
+            results[(pair.name, method)] = done[f"{pair.name}__{method}"]
     rows = [{"pair": pair.name, "method": results[(pair.name, m)].method,
              **results[(pair.name, m)].summary} for pair in pairs for m in methods]
     rows += [published_row(figure, rows) for figure in suite.published]
@@ -292,6 +304,18 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
 
         write_suite_figures(out, pairs, methods, results)
     return rows
+
+
+def run_unit(pair: Pair, method: str, path: Path) -> PairResult:
+    """One (pair, method) run, its result written atomically to path (the unit of a suite,
+    serial or on a cluster)."""
+    reference = open_source(pair.reference)
+    query = open_source(pair.query) if pair.query is not None else None
+    stamps = np.array(pair.query_stamps) if pair.query_stamps is not None else None
+    result = evaluate_pair(reference, preset(pair.preset), pair.protocol, query=query,
+                           query_stamps=stamps, method=method, progress=False)
+    write_json_atomic(path, {"fingerprint": _fingerprint(pair, method), **result.to_dict()})
+    return result
 
 
 def _fingerprint(pair: Pair, method: str) -> dict:

@@ -42,6 +42,8 @@ fi
 quiet $pip install -q colcon-common-extensions || echo "setup: colcon not installed; the colcon build test will be skipped"
 # GTSAM: the pose graph of slam-eval and the pose_graph node (optional; both name it when missing).
 quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and pose_graph will be unavailable"
+# Dask distributed: suite and build-map across processes or machines (--scheduler).
+quiet $pip install -q "dask[distributed]" || echo "setup: dask not installed; --scheduler will be unavailable"
 quiet $pip install -q --no-deps -e .
 "$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" \
   || { echo "setup: the environment is incomplete" >&2; exit 1; }

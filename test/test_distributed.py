@@ -1,0 +1,110 @@
+"""Suites and bulk map building on a Dask LocalCluster give the serial results."""
+
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed", reason="Dask distributed is not installed (make setup)")
+
+from mf_lpr_ros.bulk import SourceSpec, build_maps  # noqa: E402
+from mf_lpr_ros.cli import main  # noqa: E402
+from mf_lpr_ros.config import preset  # noqa: E402
+from mf_lpr_ros.datasets import open_source  # noqa: E402
+from mf_lpr_ros.distributed import UnitFailure, dask_client, run_units  # noqa: E402
+from mf_lpr_ros.pipeline import build_map  # noqa: E402
+from mf_lpr_ros.suite import SUITES, run_suite  # noqa: E402
+from mf_lpr_ros.synthetic import route, write_kitti_sequence  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with dask_client("local", 2) as client:
+        yield client
+
+
+def _deterministic(results: dict) -> dict:
+    """A suite's results without the timings (they differ run to run)."""
+    def strip(value):
+        if isinstance(value, dict):
+            return {k: strip(v) for k, v in value.items() if not k.startswith("ms_")}
+        if isinstance(value, list):
+            return [strip(v) for v in value]
+        return value
+    return strip(results)
+
+
+def _pairs(out):
+    return {path.name: _deterministic(json.loads(path.read_text()))
+            for path in sorted((out / "pairs").glob("*.json"))}
+
+
+def test_suite_on_a_cluster_equals_the_serial_run_even_when_a_worker_dies(cluster, data_dir,
+                                                                          tmp_path):
+    suite = SUITES["shared-data"]
+    serial, parallel = tmp_path / "serial", tmp_path / "cluster"
+    run_suite(suite, data_dir, serial, methods=["mf-lpr"], progress=False, figures=False)
+
+    pids = list(cluster.run(os.getpid).values())
+
+    def kill_one_worker():
+        # Once the first unit has written its result, a worker dies mid-run.
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not list((parallel / "pairs").glob("*.json")):
+            time.sleep(0.05)
+        os.kill(pids[0], signal.SIGKILL)
+
+    killer = threading.Thread(target=kill_one_worker)
+    killer.start()
+    try:
+        run_suite(suite, data_dir, parallel, methods=["mf-lpr"], progress=False, figures=False,
+                  client=cluster)
+    except UnitFailure:
+        pass                                  # the unit on the killed worker may be lost ...
+    killer.join()
+    # ... and a resumed run redoes only what is missing.
+    run_suite(suite, data_dir, parallel, methods=["mf-lpr"], progress=False, figures=False,
+              client=cluster)
+    assert _pairs(parallel) == _pairs(serial)
+    assert len(_pairs(serial)) == 3
+
+
+def test_bulk_build_of_three_sources_equals_three_serial_builds(cluster, world, tmp_path):
+    specs = []
+    for k in range(3):
+        write_kitti_sequence(tmp_path / f"run{k}", world, route(70 + 10 * k, lateral_offset_m=k),
+                             seed=k)
+        specs.append(SourceSpec(str(tmp_path / f"run{k}")))
+    config = preset("kitti")
+    on_cluster = build_maps(specs, config, client=cluster, progress=False)
+    serial = [build_map(open_source(spec.path), config, progress=False) for spec in specs]
+    assert len(on_cluster) == 3
+    for bulk, single in zip(on_cluster, serial):
+        assert np.array_equal(bulk.occupancy_bits, single.occupancy_bits)
+        assert np.array_equal(bulk.poses, single.poses)
+        assert np.array_equal(bulk.stamps, single.stamps)
+        assert np.array_equal(bulk.source_indices, single.source_indices)
+        assert bulk.metadata == single.metadata
+    combined = build_maps(specs, config, combine=True, client=cluster, progress=False)[0]
+    assert np.array_equal(combined.occupancy_bits,
+                          np.concatenate([m.occupancy_bits for m in serial]))
+    assert combined.metadata["sources"] == [m.metadata["source"] for m in serial]
+    # The CLI: one map each, written like build-map writes one.
+    out = tmp_path / "maps"
+    assert main(["build-map", "--sources", *[s.path for s in specs], "--one-map-each", "--out",
+                 str(out), "--preset", "kitti", "--scheduler", "local", "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["run0.mfmap", "run1.mfmap", "run2.mfmap"]
+
+
+def test_failed_units_are_reported_by_name(cluster):
+    def fragile(value):
+        if value == 2:
+            raise ValueError("no good")
+        return value * 10
+
+    with pytest.raises(UnitFailure, match="unit-2: ValueError: no good"):
+        run_units(cluster, fragile, [(f"unit-{k}", (k,)) for k in range(4)], progress=False)
