@@ -39,7 +39,7 @@ def dask_client(scheduler: str, workers: int | None = None) -> Iterator[Any]:
     distributed = _distributed()
     if scheduler == "local":
         cluster = distributed.LocalCluster(n_workers=workers or 2, threads_per_worker=1,
-                                           processes=True, dashboard_address=None)
+                                           processes=True, dashboard_address=":0")
         client = distributed.Client(cluster)
     else:
         cluster = None
