@@ -206,11 +206,11 @@ class MatchedFilterIndex:
         peaks = self._shortest_shift_first(peaks)
         result = self._result(peaks[0], ranked)
         distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
-        nearer = self._nearest_place(occupancy, result, peaks, searched, operator, volume,
-                                     n_refs)
+        nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, operator,
+                                     volume, n_refs)
         if nearer is not None:
-            peaks = [nearer] + [peak for peak in peaks if peak is not nearer]
-            result = self._result(nearer, ranked)
+            peak, result = nearer
+            peaks = [peak] + [other for other in peaks if other is not peak]
         result.distinctiveness = distinctiveness
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
@@ -235,9 +235,11 @@ class MatchedFilterIndex:
         return [peaks[nearest]] + peaks[:nearest] + peaks[nearest + 1:]
 
     def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
-                       peaks: list["_LocalPeak"], searched: np.ndarray, operator, volume,
-                       n_refs: int) -> "_LocalPeak | None":
-        """The reference nearest the matched pose, aligned, when it confirms the match.
+                       peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
+                       operator, volume, n_refs: int
+                       ) -> "tuple[_LocalPeak, MatchResult] | None":
+        """The reference nearest the matched pose, aligned, and its match, when it confirms the
+        match.
 
         The best-scoring reference is often not the nearest: a reference a few metres away
         that sees more of the same scene can outscore it. The nearest reference (to the pose
@@ -256,10 +258,10 @@ class MatchedFilterIndex:
             occupancy, nearest, self._coarse_angle(nearest, match, searched, operator, volume))
         if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
             return None
-        implied = self._result(candidate, np.array([nearest])).pose
-        if np.hypot(*(implied[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
+        confirmed = self._result(candidate, ranked)
+        if np.hypot(*(confirmed.pose[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
             return None
-        return candidate
+        return candidate, confirmed
 
     def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray, operator,
                       volume) -> float:
