@@ -16,10 +16,11 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
+    # Must agree with package.xml and mf_lpr_ros/optional.py (test_optional.py checks).
     install_requires=["setuptools", "numpy", "scipy", "pyyaml", "tqdm", "rosbags", "matplotlib",
-                      "pillow"],
-    extras_require={"icp": ["open3d-cpu"], "slam": ["gtsam"],
-                    "distributed": ["dask[distributed]"], "test": ["pytest", "hypothesis"]},
+                      "pillow", "open3d-cpu"],
+    extras_require={"gpu": ["torch"], "slam": ["gtsam"], "distributed": ["dask[distributed]"],
+                    "baselines": ["map-closures"], "test": ["pytest", "hypothesis", "ruff"]},
     zip_safe=True,
     maintainer="mf_lpr_ros developers",
     maintainer_email="mf-lpr-ros@example.org",
@@ -29,7 +30,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "mf-lpr = mf_lpr_ros.cli:main",
+            "mf-lpr = mf_lpr_ros.cli.commands:main",
             "map_builder = mf_lpr_ros.ros.map_builder:main",
             "localiser = mf_lpr_ros.ros.localiser:main",
             "managed_localiser = mf_lpr_ros.ros.localiser:managed_main",

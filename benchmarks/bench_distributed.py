@@ -12,8 +12,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from mf_lpr_ros.distributed import dask_client
-from mf_lpr_ros.suite import SUITES, run_suite
+from mf_lpr_ros.pipeline.distributed import dask_client
+from mf_lpr_ros.evaluation.suite import SUITES, run_suite
 
 
 def timed_run(root: Path, methods: list[str], workers: int | None) -> float:

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.map_store import ReferenceMap
+from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.graph import RosGraph
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
-from mf_lpr_ros.synthetic import make_world, scan_world
+from mf_lpr_ros.sim.synthetic import make_world, scan_world
 
 
 def rss_mb() -> float:

@@ -1,6 +1,5 @@
-"""Parameters of the descriptor and the search, with presets and YAML loading.
-
-Every default below is the paper's value (METHOD.md section 4) unless a comment says why not.
+"""The configuration: descriptor and search parameters (mf_lpr_ros.params) and the map spacing,
+with the named presets, YAML and ROS-parameter loading, and the preset files under config/.
 """
 
 from __future__ import annotations
@@ -14,211 +13,8 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-
-class ConfigError(ValueError):
-    """A parameter value is invalid; the message names the parameter."""
-
-
-@dataclass(frozen=True)
-class DescriptorParams:
-    """How a scan becomes a BEV occupancy descriptor (METHOD.md section 1).
-
-    size: cells per side of the high-resolution grid (D).
-    voxel_size: cell and voxel edge in metres (v).
-    z_min, z_max: height band kept, metres in the sensor frame (None = unbounded).
-    max_range: horizontal range cut in metres (None = only the square crop).
-    density_mode: "voxels" counts occupied voxels per column (paper), "points" counts raw
-        points per column (the authors' scripts).
-    density_threshold: a column is occupied when its density exceeds this (d).
-    unoccupied_weight: value of unoccupied cells (w).
-    patch_size, patch_cap: reference scans keep at most patch_cap occupied cells in each
-        patch_size x patch_size patch (m, c).
-    pool: average-pooling factor for the low-resolution descriptor (u).
-    seed: base of the per-scan random generator used by the patch cap.
-    level: remove the scan's roll and pitch (from its pose or an IMU orientation) before
-        building the descriptor; for handheld or tilted sensors.
-    crop: "square" (paper) keeps the whole size x size window; "disc" keeps its inscribed disc
-        (radius size * voxel_size / 2) and gives the cells outside it weight 0 rather than w,
-        so that a scan and the same scan turned by any yaw cover the same ground: the
-        square's corners hold different parts of the scene at different headings.
-    field_of_view_deg, heading_deg: the sensor's horizontal field of view, centred on
-        heading_deg (0 = +x, counter-clockwise). Below 360 the footprint is that wedge of the
-        window, and the cells outside it weigh 0: a forward-looking sensor (a Livox Avia sees
-        ~70 deg) has not seen them, they are not free space. The query's wedge turns with it
-        in the search, and rotations wider than the field of view (no common ground) are not
-        searched. Measured on the HKU Avia keyframes (70 deg): recall unchanged (0.714), 2
-        false closures published where 360 published none, so it is off by default.
-    """
-
-    size: int = 120
-    voxel_size: float = 0.5
-    z_min: float | None = None
-    z_max: float | None = None
-    max_range: float | None = None
-    density_mode: str = "voxels"
-    density_threshold: float = 1.0
-    unoccupied_weight: float = -0.15
-    patch_size: int = 10
-    patch_cap: int = 20
-    pool: int = 2
-    seed: int = 0
-    level: bool = False
-    crop: str = "disc"
-    field_of_view_deg: float = 360.0
-    heading_deg: float = 0.0
-
-    def __post_init__(self) -> None:
-        _require(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8", self.size)
-        _require(self.voxel_size > 0, "voxel_size", "> 0", self.voxel_size)
-        _require(self.density_mode in ("voxels", "points"), "density_mode", "'voxels' or 'points'",
-                 self.density_mode)
-        _require(self.density_threshold >= 0, "density_threshold", ">= 0", self.density_threshold)
-        _require(-1.0 <= self.unoccupied_weight <= 0.0, "unoccupied_weight", "in [-1, 0]",
-                 self.unoccupied_weight)
-        _require(self.patch_size >= 1 and self.size % self.patch_size == 0, "patch_size",
-                 f"a divisor of size ({self.size})", self.patch_size)
-        _require(1 <= self.patch_cap <= self.patch_size ** 2, "patch_cap",
-                 f"in [1, patch_size^2 = {self.patch_size ** 2}]", self.patch_cap)
-        _require(self.pool >= 1 and self.size % self.pool == 0, "pool",
-                 f"a divisor of size ({self.size})", self.pool)
-        _require(self.crop in ("square", "disc"), "crop", "'square' or 'disc'", self.crop)
-        _require(0 < self.field_of_view_deg <= 360, "field_of_view_deg", "in (0, 360]",
-                 self.field_of_view_deg)
-        _require(-180 <= self.heading_deg <= 180, "heading_deg", "in [-180, 180]",
-                 self.heading_deg)
-        if self.z_min is not None and self.z_max is not None:
-            _require(self.z_min < self.z_max, "z_min", f"< z_max ({self.z_max})", self.z_min)
-        if self.max_range is not None:
-            _require(self.max_range > 0, "max_range", "> 0", self.max_range)
-
-    @property
-    def extent_m(self) -> float:
-        """Side of the square window covered by the descriptor, in metres."""
-        return self.size * self.voxel_size
-
-    @property
-    def low_size(self) -> int:
-        return self.size // self.pool
-
-
-@dataclass(frozen=True)
-class SearchParams:
-    """How a query descriptor is matched against the map (METHOD.md sections 2 and 3).
-
-    rotation_step_deg: rotation sampling of the global stage (k).
-    top_n: distinct references passed from the global to the local stage (n). The paper uses
-        2; 3 costs one more local correlation (~2 ms) and lifts retrieval recall@1 on rotated
-        KITTI 00 BEV (00_rot, BEVPlace protocol) from 0.985 to 0.991.
-    max_shift_m: largest translation between query and reference that is searched, in metres.
-        The paper searches every shift of a full linear correlation; a window both bounds
-        the cost and rejects alignments with little overlap.
-    local_rotation_range_deg, local_rotation_step_deg: the local stage searches rotations
-        within +-range of the global best, at this finer step.
-    score_normalisation: "raw" (paper) ranks by the dot product; "cosine" divides it by the
-        reference descriptor's norm so dense references are not favoured.
-    min_confidence: matches below this confidence are rejected (the first test of
-        mf_lpr_ros/verification.py). 0.4 lies between the thresholds that maximise F1 on the
-        tuning sets (KITTI 00 BEV: 0.47, BALM handheld: 0.35); the handheld preset uses its
-        own. Alone it cannot reach zero false closures on KITTI 00 short of 0.5 (recall 0.70);
-        with distinctiveness and odometry consistency it does at 0.4 (recall 0.93).
-    chunk_size: references processed per block in the global stage (memory vs. speed).
-    prefilter_top_k: the global stage correlates only the k references that a rotation- and
-        translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/prefilter.py);
-        0 searches every reference exhaustively (exact mode). With 64 (and the expansion
-        below), the match equals the exhaustive search's on every revisit query of KITTI 00
-        BEV (and 00_rot), in ~1/4 of the time at 1500 references and ~1/100 at 20000
-        (benchmarks/bench_search.py).
-    prefilter_expand_m: the prefilter's 16 best references bring along every reference within
-        this distance of them (map positions): the same place seen from a few metres away often
-        scores just below them in the exact search, and the prefilter ranks such neighbours
-        less consistently. 0 disables.
-    backend: where the search's array work runs. "numpy" (CPU); "torch" (PyTorch: the CUDA
-        GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
-        PyTorch is installed and sees a CUDA device, else numpy.
-    verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
-        only if ICP (open3d) against the reference's stored cloud finds a correspondence
-        within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
-        is then published. Needs maps that keep clouds (loop_closure mode keeps them; build
-        maps with keep_clouds). On the BALM handheld sequence confidence alone cannot separate
-        true revisits from look-alike places (both reach 0.36-0.40); ICP fitness does (true
-        revisits 0.71-0.85 but two at 0.64-0.66, look-alikes <= 0.66): the handheld preset
-        uses 0.68.
-    distinct_radius_m: references farther than this from the match count as another place
-        when MatchResult.distinctiveness compares the match with the best other place.
-    min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).
-    consistency_min_support: odometry consistency (mf_lpr_ros/verification.py). When > 0 and
-        the scans' odometry is known, a match is accepted only when at least this many earlier
-        candidate matches (those passing the other tests) from the last consistency_window_m of
-        travel, each from a query at least consistency_min_separation_m from this one, agree
-        with it: the pose one implies, carried along the odometry, lies within
-        consistency_tolerance_m and consistency_tolerance_deg of the other's. A false match is
-        a one-off; a true revisit repeats along the path. 0 = off.
-    rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
-        is often not the nearest one (a reference a few metres off can see more of the same
-        scene); after the local stage, the reference nearest the matched pose is aligned too
-        and becomes the match when it scores within rerank_margin (a fraction) of the best
-        and implies the same query position within rerank_agreement_m. The pose barely
-        changes; the reported place is the nearest one. rerank_margin 0 = off.
-    """
-
-    rotation_step_deg: float = 10.0
-    top_n: int = 3
-    max_shift_m: float = 8.0
-    local_rotation_range_deg: float = 10.0
-    local_rotation_step_deg: float = 2.0
-    score_normalisation: str = "cosine"
-    min_confidence: float = 0.4
-    chunk_size: int = 256
-    prefilter_top_k: int = 64
-    prefilter_expand_m: float = 6.0
-    backend: str = "auto"
-    verify_fitness: float = 0.0
-    distinct_radius_m: float = 10.0
-    min_distinctiveness: float = 0.15
-    consistency_min_support: int = 2
-    consistency_window_m: float = 30.0
-    consistency_min_separation_m: float = 1.0
-    consistency_tolerance_m: float = 1.5
-    consistency_tolerance_deg: float = 5.0
-    rerank_margin: float = 0.1
-    rerank_agreement_m: float = 2.0
-
-    def __post_init__(self) -> None:
-        _require(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
-                 "rotation_step_deg", "a divisor of 360", self.rotation_step_deg)
-        _require(self.top_n >= 1, "top_n", ">= 1", self.top_n)
-        _require(self.max_shift_m > 0, "max_shift_m", "> 0", self.max_shift_m)
-        _require(self.local_rotation_range_deg >= 0, "local_rotation_range_deg", ">= 0",
-                 self.local_rotation_range_deg)
-        _require(self.local_rotation_step_deg > 0, "local_rotation_step_deg", "> 0",
-                 self.local_rotation_step_deg)
-        _require(self.score_normalisation in ("raw", "cosine"), "score_normalisation",
-                 "'raw' or 'cosine'", self.score_normalisation)
-        _require(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
-                 self.min_confidence)
-        _require(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
-        _require(self.prefilter_top_k >= 0, "prefilter_top_k", ">= 0 (0 = exhaustive)",
-                 self.prefilter_top_k)
-        _require(self.prefilter_expand_m >= 0, "prefilter_expand_m", ">= 0",
-                 self.prefilter_expand_m)
-        _require(self.backend in ("auto", "numpy", "torch"), "backend",
-                 "'auto', 'numpy' or 'torch'", self.backend)
-        _require(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",
-                 self.verify_fitness)
-        _require(self.distinct_radius_m > 0, "distinct_radius_m", "> 0", self.distinct_radius_m)
-        _require(0.0 <= self.min_distinctiveness <= 1.0, "min_distinctiveness", "in [0, 1]",
-                 self.min_distinctiveness)
-        _require(self.consistency_min_support >= 0, "consistency_min_support", ">= 0",
-                 self.consistency_min_support)
-        for name in ("consistency_window_m", "consistency_tolerance_m",
-                     "consistency_tolerance_deg"):
-            _require(getattr(self, name) > 0, name, "> 0", getattr(self, name))
-        _require(0.0 <= self.rerank_margin < 1.0, "rerank_margin", "in [0, 1)",
-                 self.rerank_margin)
-        _require(self.rerank_agreement_m > 0, "rerank_agreement_m", "> 0",
-                 self.rerank_agreement_m)
-        _require(self.consistency_min_separation_m >= 0, "consistency_min_separation_m", ">= 0",
-                 self.consistency_min_separation_m)
+from mf_lpr_ros.errors import ConfigError
+from mf_lpr_ros.params import DescriptorParams, SearchParams, require_parameter
 
 
 @dataclass(frozen=True)
@@ -235,7 +31,7 @@ class Config:
     auto: bool = False
 
     def __post_init__(self) -> None:
-        _require(self.spacing_m >= 0, "spacing_m", ">= 0", self.spacing_m)
+        require_parameter(self.spacing_m >= 0, "spacing_m", ">= 0", self.spacing_m)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -411,8 +207,3 @@ def _check_keys(values: Mapping[str, Any], allowed: set[str], section: str) -> N
     unknown = sorted(set(values) - allowed)
     if unknown:
         raise ConfigError(f"unknown {section} parameter(s) {unknown}; known: {sorted(allowed)}")
-
-
-def _require(ok: bool, name: str, expectation: str, value: Any) -> None:
-    if not ok:
-        raise ConfigError(f"parameter {name} must be {expectation}, got {value!r}")

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live import MapBuilder, PairedScan
-from mf_lpr_ros.synthetic import make_world, route, scan_world
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PairedScan
+from mf_lpr_ros.sim.synthetic import make_world, route, scan_world
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -5,14 +5,18 @@ import math
 import numpy as np
 import pytest
 
-from mf_lpr_ros.auto_params import (SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor)
-from mf_lpr_ros.config import Config, ConfigError, DescriptorParams, config_from_dict, preset
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor
+from mf_lpr_ros.config import Config, config_from_dict, preset
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.datasets import open_source
-from mf_lpr_ros.descriptor import InvalidCloudError, voxel_size_for_density
-from mf_lpr_ros.live import MapBuilder, PairedScan
-from mf_lpr_ros.pipeline import build_map
-from mf_lpr_ros.pose import pose_matrix
-from mf_lpr_ros.synthetic import route, scan_world, write_kitti_sequence
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.core.descriptor import voxel_size_for_density
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PairedScan
+from mf_lpr_ros.pipeline.mapping import build_map
+from mf_lpr_ros.core.pose import pose_matrix
+from mf_lpr_ros.sim.synthetic import route, scan_world, write_kitti_sequence
 
 
 def _scans(world, n=6, lift_m=0.0, seed=0):
@@ -96,7 +100,7 @@ def test_build_map_with_auto_records_its_choice(world, tmp_path):
     assert reference_map.params != Config().descriptor
     path = tmp_path / "auto.mfmap"
     reference_map.save(path)
-    from mf_lpr_ros.map_store import ReferenceMap
+    from mf_lpr_ros.core.map_store import ReferenceMap
     assert ReferenceMap.load(path).metadata["auto"]["choice"] == choice["choice"]
 
 

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from mf_lpr_ros.cli import main
-from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.synthetic import route, write_kitti_sequence
+from mf_lpr_ros.cli.commands import main
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
 @pytest.fixture(scope="module")

@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.datasets import (BevPngSequence, DatasetError, KittiSequence, PointFolderSequence,
-                                 RosbagSequence, open_source)
-from mf_lpr_ros.datasets.pcd import read_pcd
-from mf_lpr_ros.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.datasets import (BevPngSequence, KittiSequence, PointFolderSequence, RosbagSequence,
+                                 open_source)
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.io.pcd import read_pcd
+from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
 
 
 def write_kitti(folder, n=3, times=None):
@@ -95,10 +96,10 @@ def test_real_bag_matches_kitti_folder(data_dir):
 def test_real_bev_axes_agree_with_poses(data_dir):
     """Frames 100 and 4529 of KITTI 00 are 0.14 m apart with ~12.6 deg of yaw difference."""
     from mf_lpr_ros.config import preset
-    from mf_lpr_ros.map_store import ReferenceMap
-    from mf_lpr_ros.pipeline import describe_scan
-    from mf_lpr_ros.pose import planar, wrap_angle
-    from mf_lpr_ros.search import MatchedFilterIndex
+    from mf_lpr_ros.core.map_store import ReferenceMap
+    from mf_lpr_ros.pipeline.mapping import describe_scan
+    from mf_lpr_ros.core.pose import planar, wrap_angle
+    from mf_lpr_ros.core.search import MatchedFilterIndex
 
     config = preset("kitti")
     scans = {s.index: s for s in open_source(data_dir / "kitti_bev/00").iter_scans([100, 4529])}
@@ -114,7 +115,7 @@ def test_real_bev_axes_agree_with_poses(data_dir):
 
 def test_nclt_records_ground_truth_and_frames(tmp_path):
     from mf_lpr_ros.datasets import NcltSequence
-    from mf_lpr_ros.pose import euler_pose, planar
+    from mf_lpr_ros.core.pose import euler_pose, planar
 
     (tmp_path / "velodyne_sync").mkdir()
     # Names are microseconds; listed out of order on purpose.
@@ -237,7 +238,7 @@ def test_oxford_bin_and_png_agree_and_time_order(tmp_path):
 
 def test_oxford_ins_ned_becomes_enu(tmp_path):
     from mf_lpr_ros.datasets import OxfordRadarSequence
-    from mf_lpr_ros.pose import planar
+    from mf_lpr_ros.core.pose import planar
 
     session = tmp_path / "s"
     (session / "velodyne_left").mkdir(parents=True)
@@ -306,7 +307,7 @@ def test_wildplaces_clouds_poses_and_query_split(tmp_path):
 
 def test_ply_folder_with_kitti_poses(tmp_path):
     from mf_lpr_ros.datasets import PointFolderSequence
-    from mf_lpr_ros.datasets.ply import read_ply
+    from mf_lpr_ros.io.ply import read_ply
 
     folder = tmp_path / "ply"
     folder.mkdir()

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.config import DescriptorParams
-from mf_lpr_ros.descriptor import (InvalidCloudError, auto_voxel_size, cap_patches,
-                                   describe_density_image, describe_points, footprint,
-                                   height_density, pool, pooled_weights, rotate_occupancy,
-                                   weighted)
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.core.descriptor import (auto_voxel_size, cap_patches, describe_density_image,
+                                        describe_points, footprint, height_density, pool,
+                                        pooled_weights, rotate_occupancy, weighted)
 
 PARAMS = DescriptorParams(voxel_size=0.5, density_threshold=1.0)
 
@@ -116,7 +116,7 @@ def test_auto_voxel_size_follows_the_papers_rule(rng):
 def test_disc_crop_covers_the_same_ground_at_every_heading(world):
     # Turning the sensor by 45 degrees: the square window's corners then hold other parts of
     # the scene; the inscribed disc holds the same ground.
-    from mf_lpr_ros.synthetic import scan_world
+    from mf_lpr_ros.sim.synthetic import scan_world
 
     rng = np.random.default_rng(3)
     points, _ = scan_world(world, 5.0, -3.0, 0.0, rng)

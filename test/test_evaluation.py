@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.datasets import Sequence
-from mf_lpr_ros.evaluation import Protocol, select, summarise
+from mf_lpr_ros.evaluation.metrics import QueryRecord, summarise
+from mf_lpr_ros.evaluation.protocol import Protocol, select
 
 
 class Line(Sequence):
@@ -61,9 +62,11 @@ def test_query_split_restricts_queries_by_stamp():
 
 
 def _record(nearest, retrieved, rte, rre, confidence, candidates, published=False):
-    return {"nearest_reference_m": nearest, "retrieved_distance_m": retrieved, "rte_m": rte,
-            "rre_deg": rre, "confidence": confidence, "candidate_distances_m": candidates,
-            "published": published, "ms_descriptor": 1.0, "ms_global": 2.0, "ms_local": 3.0}
+    return QueryRecord(query_index=0, stamp=0.0, truth=[0.0, 0.0, 0.0], estimate=[0.0, 0.0, 0.0],
+                       reference_index=0, nearest_reference_m=nearest,
+                       retrieved_distance_m=retrieved, candidate_distances_m=candidates,
+                       rte_m=rte, rre_deg=rre, confidence=confidence, published=published,
+                       ms_descriptor=1.0, ms_global=2.0, ms_local=3.0)
 
 
 def test_published_closure_metrics_count_what_a_back_end_would_receive():
@@ -115,10 +118,11 @@ def test_summary_metrics_follow_their_definitions():
 
 def test_map_closures_baseline_runs_or_is_refused_by_name(tmp_path):
     from mf_lpr_ros.config import preset
-    from mf_lpr_ros.evaluation import make_method
+    from mf_lpr_ros.errors import MissingDependencyError
+    from mf_lpr_ros.evaluation.methods import make_method
 
     if importlib.util.find_spec("map_closures") is None:
-        with pytest.raises(ValueError, match="map-closures"):
+        with pytest.raises(MissingDependencyError, match="pip install map-closures"):
             make_method("map-closures", preset("default"))
         return
     from types import SimpleNamespace

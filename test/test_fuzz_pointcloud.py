@@ -9,8 +9,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mf_lpr_ros.descriptor import InvalidCloudError
-from mf_lpr_ros.pointcloud import pointcloud2_to_xyz
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 
 FIELD = st.builds(SimpleNamespace,
                   name=st.sampled_from(["x", "y", "z", "intensity", "ring", "t"]),

@@ -3,17 +3,19 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.cli import main
+from mf_lpr_ros.cli.commands import main
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.datasets import DatasetError, open_source
-from mf_lpr_ros.descriptor import InvalidCloudError, describe_points
-from mf_lpr_ros.global_map import (GLOBAL_MAP_KIND, RenderParams, TiledCloud, accumulate,
-                                   build_global_map, ground_grid, read_global_cloud,
-                                   reference_positions, render_view, write_pcd)
-from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.search import MatchedFilterIndex
-from mf_lpr_ros.simulator import cast, drive, scene_cloud, urban_traversals
-from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw, wrap_angle
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.core.descriptor import describe_points
+from mf_lpr_ros.pipeline.global_map import (GLOBAL_MAP_KIND, RenderParams, TiledCloud, accumulate,
+                                            build_global_map, ground_grid, read_global_cloud,
+                                            reference_positions, render_view, write_pcd)
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.sim.simulator import cast, drive, scene_cloud, urban_traversals
+from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw, wrap_angle
 
 CONFIG = preset("kitti")
 SIM_RENDER = RenderParams(elevation_deg=(-15.0, 15.0))
@@ -97,7 +99,7 @@ def test_the_area_grows_from_the_trajectory_through_free_space_only():
 
 
 def test_accumulate_writes_a_map_the_renderer_reads(tmp_path, world):
-    from mf_lpr_ros.synthetic import route, write_kitti_sequence
+    from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
     write_kitti_sequence(tmp_path / "seq", world, route(12), seed=1)
     assert main(["accumulate", str(tmp_path / "seq"), "--out", str(tmp_path / "map.pcd"),

@@ -8,11 +8,14 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live import (InvalidPoseError, Localiser, MapBuilder, PairedScan, PoseBuffer,
-                             ScanPoseSynchroniser, relocalised_pose)
-from mf_lpr_ros.map_store import MapParameterMismatch, ReferenceMap
-from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw
-from mf_lpr_ros.synthetic import route, scan_world
+from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.live.localiser import Localiser, relocalised_pose
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PairedScan, PoseBuffer, ScanPoseSynchroniser
+from mf_lpr_ros.errors import MapParameterMismatch
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.sim.synthetic import route, scan_world
 
 CONFIG = preset("kitti")
 
@@ -125,7 +128,7 @@ def test_localiser_refuses_a_map_with_other_parameters(world):
 
 
 def test_relocalised_pose_removes_the_extrinsic():
-    from mf_lpr_ros.search import MatchResult
+    from mf_lpr_ros.core.search import MatchResult
 
     match = MatchResult(0, 1.0, 1.0, np.zeros(2), 0.0, np.array([10.0, 5.0, math.pi / 2]),
                         np.eye(3), np.eye(3), np.array([0]))

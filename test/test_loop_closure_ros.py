@@ -10,14 +10,14 @@ from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
-from mf_lpr_ros.pose import planar, pose_matrix
-from mf_lpr_ros.pose_graph import absolute_trajectory_error
-from mf_lpr_ros.ros.common import ParameterFault
+from mf_lpr_ros.core.pose import planar, pose_matrix
+from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
+from mf_lpr_ros.ros.lidar_node import ParameterFault
 from mf_lpr_ros.ros.localiser import LIO_SAM_TOPIC, LocaliserNode
 from mf_lpr_ros.ros.messages import (decode_loop_closure, loop_closure_message, odometry_message,
                                      points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds)
-from mf_lpr_ros.slam_eval import DriftModel, with_planar
-from mf_lpr_ros.synthetic import route, scan_world
+from mf_lpr_ros.evaluation.slam import DriftModel, with_planar
+from mf_lpr_ros.sim.synthetic import route, scan_world
 
 START_S = 1000.0
 PERIOD_S = 0.1

@@ -4,10 +4,10 @@ import struct
 import numpy as np
 import pytest
 
-from mf_lpr_ros.config import DescriptorParams
-from mf_lpr_ros.map_store import (FORMAT_VERSION, MapFileError, MapParameterMismatch,
-                                  ReferenceMap)
-from mf_lpr_ros.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.core.map_store import FORMAT_VERSION, ReferenceMap
+from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
+from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 
 PARAMS = DescriptorParams(voxel_size=0.4)
 
@@ -115,7 +115,7 @@ def test_failed_save_keeps_the_previous_map(tmp_path, rng, monkeypatch):
     def broken_fsync(fd):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("mf_lpr_ros.map_store.os.fsync", broken_fsync)
+    monkeypatch.setattr("mf_lpr_ros.core.map_store.os.fsync", broken_fsync)
     with pytest.raises(OSError):
         bigger.save(path)
     monkeypatch.undo()

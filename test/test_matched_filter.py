@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
 
 
 def correlate_direct(query, reference, max_shift):

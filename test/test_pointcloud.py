@@ -3,8 +3,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mf_lpr_ros.descriptor import InvalidCloudError
-from mf_lpr_ros.pointcloud import FLOAT32, FLOAT64, UINT16, pointcloud2_to_xyz
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.io.pointcloud import FLOAT32, FLOAT64, UINT16, pointcloud2_to_xyz
 
 
 def field(name, offset, datatype=FLOAT32, count=1):

@@ -7,7 +7,7 @@ Thresholds sit a little under what this implementation measured, so a regression
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets import open_source
-from mf_lpr_ros.evaluation import evaluate
+from mf_lpr_ros.evaluation.protocol import evaluate
 
 
 def test_kitti00_bev_loop_closure(data_dir):

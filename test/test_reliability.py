@@ -18,13 +18,14 @@ import pytest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 
-from mf_lpr_ros.auto_params import SAMPLE_SCANS
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live import Localiser
-from mf_lpr_ros.map_store import MapFileError, ReferenceMap
+from mf_lpr_ros.live.localiser import Localiser
+from mf_lpr_ros.errors import MapFileError
+from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
-from mf_lpr_ros.synthetic import scan_world
+from mf_lpr_ros.sim.synthetic import scan_world
 from test_map_store import make_map
 
 BIN = os.path.dirname(sys.executable)

@@ -14,7 +14,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from mf_lpr_ros.pose import planar
+from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds
 from test_ros_nodes import errors, planar_of_message

@@ -9,8 +9,8 @@ from rosbags.rosbag1 import Writer
 from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import PointCloud2
 
-from mf_lpr_ros.datasets import DatasetError
-from mf_lpr_ros.pointcloud import pointcloud2_to_xyz
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 from mf_lpr_ros.ros.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.ros.replay import replay_bag
 
@@ -79,7 +79,7 @@ def test_replay_names_missing_topics(ros_graph, ros1_bag):
 
 
 def test_replay_command_line(ros1_bag, capsys):
-    from mf_lpr_ros.cli import main
+    from mf_lpr_ros.cli.commands import main
 
     assert main(["replay", str(ros1_bag[0]), "--rate", "50", "--quiet", "--topics",
                  "/velodyne_points", "--ros-args", "-r", "__node:=replayer"]) == 0

@@ -11,14 +11,16 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
-from mf_lpr_ros.live import MapBuilder, PairedScan
-from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.pipeline import build_map, revisits
-from mf_lpr_ros.pose import planar
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PairedScan
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.pipeline.mapping import build_map
+from mf_lpr_ros.evaluation.protocol import revisits
+from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
-from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message,
-                                     points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds)
+from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message, points_to_pointcloud2,
+                                     seconds_to_stamp, stamp_to_seconds)
 from mf_lpr_ros.ros.replay import replay_bag
 from test_ros_nodes import errors, planar_of_message
 
@@ -123,7 +125,7 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
 
 
 def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
-    from mf_lpr_ros.cli import main
+    from mf_lpr_ros.cli.commands import main
 
     bag, _ = balm_bag
     assert main(["demo", "--data", str(bag), "--out", str(tmp_path), "--rate", "4",
@@ -142,7 +144,7 @@ def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
     pytest.importorskip("gtsam", reason="gtsam not installed (pip install gtsam)")
     from nav_msgs.msg import Path
 
-    from mf_lpr_ros.pose_graph import absolute_trajectory_error
+    from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
     from mf_lpr_ros.ros.pose_graph import PoseGraphNode
 
     bag, sequence = balm_bag

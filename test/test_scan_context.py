@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.scan_context import ScanContextIndex, ScanContextParams
-from mf_lpr_ros.synthetic import scan_world
+from mf_lpr_ros.evaluation.scan_context import ScanContextIndex, ScanContextParams
+from mf_lpr_ros.sim.synthetic import scan_world
 
 
 def turned(points, yaw_deg):

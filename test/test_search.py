@@ -1,13 +1,14 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.config import DescriptorParams, SearchParams, preset
-from mf_lpr_ros.descriptor import describe_density_image, describe_points, rotate_occupancy
-from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.pipeline import describe_scan
-from mf_lpr_ros.pose import planar, wrap_angle
-from mf_lpr_ros.search import MatchedFilterIndex
-from mf_lpr_ros.synthetic import make_world, scan_world
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.config import preset
+from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, rotate_occupancy
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.pipeline.mapping import describe_scan
+from mf_lpr_ros.core.pose import planar, wrap_angle
+from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.sim.synthetic import make_world, scan_world
 
 PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
 
@@ -71,7 +72,7 @@ def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):
 
 
 def test_unseen_place_gets_low_confidence(world, synthetic_map):
-    from mf_lpr_ros.synthetic import make_world
+    from mf_lpr_ros.sim.synthetic import make_world
 
     elsewhere = make_world(seed=99)
     points, _ = scan_world(elsewhere, 0, 0, 0, np.random.default_rng(3))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
-from mf_lpr_ros.pose import planar, pose_matrix, quaternion_from_yaw
-from mf_lpr_ros.simulator import (VLP16, WORLDS, Scene, SensorModel, _box_hits,
-                                  _cylinder_hits, _sphere_hits, cast, urban_scene, write_bag)
+from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.sim.simulator import (VLP16, WORLDS, Scene, SensorModel, _box_hits, _cylinder_hits,
+                                      _sphere_hits, cast, urban_scene, write_bag)
 
 EXACT = SensorModel("test", (-10.0, 0.0, 10.0), azimuth_step_deg=1.0, range_noise_m=0.0,
                     dropout=0.0, max_range_m=60.0)

@@ -7,12 +7,12 @@ import pickle
 import numpy as np
 import pytest
 
-from mf_lpr_ros import suite as suite_module
-from mf_lpr_ros.cli import main
-from mf_lpr_ros.datasets import DatasetError
-from mf_lpr_ros.evaluation import Protocol
-from mf_lpr_ros.suite import SUITES, Published, Rule, Suite, run_suite
-from mf_lpr_ros.synthetic import route, write_kitti_sequence
+from mf_lpr_ros.evaluation import suite as suite_module
+from mf_lpr_ros.cli.commands import main
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.evaluation.protocol import Protocol
+from mf_lpr_ros.evaluation.suite import SUITES, Published, Rule, Suite, run_suite
+from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
 def test_paper_presets_pair_the_papers_sessions(tmp_path):

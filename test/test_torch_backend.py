@@ -6,15 +6,17 @@ import sys
 import numpy as np
 import pytest
 
-from mf_lpr_ros.config import ConfigError, DescriptorParams, SearchParams
-from mf_lpr_ros.descriptor import describe_points
-from mf_lpr_ros.map_store import ReferenceMap
-from mf_lpr_ros.matched_filter import SpectralBank, correlate_fft2
-from mf_lpr_ros.prefilter import PolarSpectrumIndex
-from mf_lpr_ros.search import MatchedFilterIndex, resolve_backend
-from mf_lpr_ros.synthetic import scan_world
+from mf_lpr_ros.errors import ConfigError
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.core.descriptor import describe_points
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
+from mf_lpr_ros.core.backends import resolve_backend
+from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.sim.synthetic import scan_world
 
-torch_backend = pytest.importorskip("mf_lpr_ros.torch_backend",
+torch_backend = pytest.importorskip("mf_lpr_ros.core.backends.torch_backend",
                                     reason="PyTorch is not installed (make test installs it)")
 PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
 
@@ -85,7 +87,7 @@ def test_backend_choice(monkeypatch):
 
 
 def test_torch_backend_without_pytorch_names_the_problem(monkeypatch):
-    monkeypatch.delitem(sys.modules, "mf_lpr_ros.torch_backend")
+    monkeypatch.delitem(sys.modules, "mf_lpr_ros.core.backends.torch_backend")
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(ConfigError, match="backend is 'torch' but PyTorch cannot be imported"):
         resolve_backend("torch")

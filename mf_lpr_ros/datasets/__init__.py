@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .base import DatasetError, Scan, Sequence
-from .bev_png import BevPngSequence
-from .kitti import KittiSequence
-from .mulran import MulranSequence
-from .nclt import NcltSequence
-from .oxford import OxfordRadarSequence
-from .point_folder import PointFolderSequence, point_folder
-from .rosbag import RosbagSequence
-from .wildplaces import CLOUD_FOLDERS, WildPlacesSequence
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets.base import Scan, Sequence
+from mf_lpr_ros.datasets.bev_png import BevPngSequence
+from mf_lpr_ros.datasets.kitti import KittiSequence
+from mf_lpr_ros.datasets.mulran import MulranSequence
+from mf_lpr_ros.datasets.nclt import NcltSequence
+from mf_lpr_ros.datasets.oxford import OxfordRadarSequence
+from mf_lpr_ros.datasets.point_folder import PointFolderSequence, point_folder
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.datasets.wildplaces import CLOUD_FOLDERS, WildPlacesSequence
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 

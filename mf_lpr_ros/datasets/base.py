@@ -6,10 +6,7 @@ from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import numpy as np
-
-
-class DatasetError(ValueError):
-    """A dataset folder or file is not in a layout we can read; the message says what is wrong."""
+from mf_lpr_ros.errors import DatasetError
 
 
 @dataclass
@@ -60,6 +57,18 @@ class Sequence:
     def pose(self, index: int) -> np.ndarray | None:
         return None if self.poses is None else self.poses[index]
 
+    def valid_poses(self, needed_for: str) -> np.ndarray:
+        """(n,) bool: the scans with a finite pose; DatasetError naming needed_for when the
+        source has no poses at all."""
+        if self.poses is None:
+            raise DatasetError(f"{self.name}: this source has no poses; {needed_for} needs them")
+        return np.isfinite(self.poses).all(axis=(1, 2))
+
+    @property
+    def fully_posed(self) -> bool:
+        """Every scan has a finite pose (the poses can then serve as odometry)."""
+        return self.poses is not None and bool(np.isfinite(self.poses).all())
+
 
 def read_kitti_poses(path, expected: int | None = None) -> np.ndarray:
     """KITTI poses file: 12 numbers per line (3x4 row-major) -> (n, 4, 4)."""
@@ -80,7 +89,7 @@ def read_kitti_poses(path, expected: int | None = None) -> np.ndarray:
 
 def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     """TUM file 'key x y z qx qy qz qw' -> (keys (n,), poses (n, 4, 4)); '#' lines skipped."""
-    from ..pose import pose_matrix
+    from mf_lpr_ros.core.pose import pose_matrix
 
     try:
         values = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
@@ -101,7 +110,7 @@ def poses_at_stamps(pose_stamps: np.ndarray, poses: np.ndarray, scan_stamps: np.
                     max_gap_s: float) -> np.ndarray:
     """Poses interpolated at the scans' stamps; NaN where the ground truth has a gap (a scan
     with a NaN pose is neither a reference nor a query)."""
-    from ..pose import interpolate_poses
+    from mf_lpr_ros.core.pose import interpolate_poses
 
     order = np.argsort(pose_stamps, kind="stable")
     interpolated, valid = interpolate_poses(pose_stamps[order], poses[order], scan_stamps,

@@ -12,10 +12,10 @@ from typing import Iterator
 
 import numpy as np
 
-from .base import (DatasetError, Scan, Sequence, nearest_keys, read_kitti_poses,
-                   read_tum_poses)
-from .pcd import read_pcd
-from .ply import read_ply
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets.base import Scan, Sequence, nearest_keys, read_kitti_poses, read_tum_poses
+from mf_lpr_ros.io.pcd import read_pcd
+from mf_lpr_ros.io.ply import read_ply
 
 _KEY_TOLERANCE = 1e-3
 SUFFIXES = (".pcd", ".ply")

@@ -12,9 +12,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..pointcloud import pointcloud2_to_xyz
-from ..pose import interpolate_poses, pose_matrix
-from .base import DatasetError, Scan, Sequence
+from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
+from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets.base import Scan, Sequence
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",

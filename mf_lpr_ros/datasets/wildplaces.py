@@ -15,9 +15,10 @@ from typing import Iterator
 
 import numpy as np
 
-from ..pose import pose_matrix
-from .base import DatasetError, Scan, Sequence, nearest_keys, read_xyzi_bin
-from .pcd import read_pcd
+from mf_lpr_ros.core.pose import pose_matrix
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets.base import Scan, Sequence, nearest_keys, read_xyzi_bin
+from mf_lpr_ros.io.pcd import read_pcd
 
 CLOUD_FOLDERS = ("Clouds_downsampled", "Clouds")
 POSE_FILES = ("poses_aligned.csv", "poses.csv")

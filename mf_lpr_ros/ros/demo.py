@@ -19,19 +19,19 @@ import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from std_msgs.msg import Float64MultiArray
 
-from ..config import preset as named_preset
-from ..datasets.rosbag import RosbagSequence
-from ..map_store import ReferenceMap
-from ..pipeline import revisits
-from ..pose import planar, pose_matrix, wrap_angle
-from ..pose_graph import absolute_trajectory_error
-from ..simulator import WORLDS, write_bag
-from .graph import RosGraph
-from .localiser import LocaliserNode
-from .map_builder import MapBuilderNode
-from .pose_graph import PoseGraphNode
-from .messages import decode_loop_closure, stamp_to_seconds
-from .replay import replay_bag
+from mf_lpr_ros.config import preset as named_preset
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.evaluation.protocol import revisits
+from mf_lpr_ros.core.pose import planar, planar_error, pose_matrix
+from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
+from mf_lpr_ros.sim.simulator import WORLDS, write_bag
+from mf_lpr_ros.ros.graph import RosGraph
+from mf_lpr_ros.ros.localiser import LocaliserNode
+from mf_lpr_ros.ros.map_builder import MapBuilderNode
+from mf_lpr_ros.ros.pose_graph import PoseGraphNode
+from mf_lpr_ros.ros.messages import decode_loop_closure, stamp_to_seconds
+from mf_lpr_ros.ros.replay import replay_bag
 
 # Bump when the simulator's output changes, so cached bags are rebuilt.
 SIMULATION_VERSION = 1
@@ -135,8 +135,7 @@ def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int
                  for m in poses}
     translation, yaw, correct, false_unseen = [], [], 0, 0
     for index, estimate in estimates.items():
-        error_m = float(np.hypot(*(estimate[:2] - truth[index, :2])))
-        error_deg = abs(math.degrees(float(wrap_angle(estimate[2] - truth[index, 2]))))
+        error_m, error_deg = planar_error(estimate, truth[index])
         translation.append(error_m)
         yaw.append(error_deg)
         correct += bool(seen[index] and error_m <= CORRECT_WITHIN_M
@@ -217,7 +216,7 @@ def _plot(path: Path, results: list[WorldResult]) -> None:
         if result.estimates:
             indices = np.array(sorted(result.estimates))
             estimate = np.array([result.estimates[i] for i in indices])
-            error = np.hypot(*(estimate[:, :2] - truth[indices, :2]).T)
+            error, _ = planar_error(estimate, truth[indices])
             points = trajectory_ax.scatter(estimate[:, 0], estimate[:, 1], c=np.minimum(error, 2),
                                            cmap="RdYlGn_r", s=14, vmin=0, vmax=2,
                                            label="published poses")
@@ -301,8 +300,9 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
     for closure in map(decode_loop_closure, closures):
         stamp = round(stamp_to_seconds(closure["query_stamp"]), 3)
         query = index_of[stamp]
-        translation.append(float(np.hypot(*(by_stamp[stamp][:2] - truth[query][:2]))))
-        yaw.append(abs(math.degrees(float(wrap_angle(by_stamp[stamp][2] - truth[query][2])))))
+        error_m, error_deg = planar_error(by_stamp[stamp], truth[query])
+        translation.append(error_m)
+        yaw.append(error_deg)
         closed.add(query)
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], named_preset(preset).spacing_m,
                          exclude_recent_s, revisit_radius_m)

@@ -39,15 +39,18 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from ..config import Config
-from ..descriptor import InvalidCloudError
-from ..live import (InvalidPoseError, LiveMatch, Localiser, PoseBuffer, ScanPoseSynchroniser,
-                    relative_transform, relocalised_pose)
-from ..map_store import MapFileError, MapParameterMismatch, ReferenceMap
-from .common import POSE_SOURCES, LidarNodeMixin, ParameterFault, run_node, sensor_qos
-from .messages import (candidates_message, confidences_message, diagnostics_message,
-                       lio_sam_loop_message, loop_closure_message, match_markers,
-                       relocalisation_message)
+from mf_lpr_ros.config import Config
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.live.localiser import LiveMatch, Localiser, relative_transform, relocalised_pose
+from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
+from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.ros.lidar_node import (POSE_SOURCES, LidarNodeMixin, ParameterFault, run_node,
+                                       sensor_qos)
+from mf_lpr_ros.ros.messages import (candidates_message, confidences_message, diagnostics_message,
+                                     lio_sam_loop_message, loop_closure_message, match_markers,
+                                     relocalisation_message)
 
 LOOP_CLOSURE_FORMATS = ("mf_lpr", "lio_sam")
 LIO_SAM_TOPIC = "lio_loop/loop_closure_detection"

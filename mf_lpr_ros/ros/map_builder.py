@@ -23,11 +23,14 @@ from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReli
 
 from sensor_msgs.msg import PointCloud2
 
-from ..auto_params import SAMPLE_SCANS
-from ..descriptor import InvalidCloudError
-from ..live import InvalidPoseError, MapBuilder, PoseBuffer, ScanPoseSynchroniser
-from ..map_store import MapFileError, ReferenceMap
-from .common import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
+from mf_lpr_ros.errors import MapFileError
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.ros.lidar_node import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
 
 IF_EXISTS = ("error", "append", "overwrite")
 # As map servers publish a map: reliable and transient local, so a map published before this
@@ -122,7 +125,7 @@ class MapBuilderNode(LidarNode):
             f"(spacing {config.spacing_m} m, sensor {self.sensor_height_m} m above the ground)")
 
     def _on_global_map(self, message: PointCloud2) -> None:
-        from ..live import decode_points
+        from mf_lpr_ros.io.pointcloud import decode_points
 
         if self._global_worker is not None and self._global_worker.is_alive():
             self.log_problem("global_map", "a global map arrived while the last one is still "
@@ -140,7 +143,7 @@ class MapBuilderNode(LidarNode):
         self._global_worker.start()
 
     def _render_global_map(self, points, frame: str) -> None:
-        from ..global_map import RenderParams, build_global_map
+        from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
 
         render = RenderParams(spacing_m=self._global_config.spacing_m,
                               sensor_height_m=self.sensor_height_m)

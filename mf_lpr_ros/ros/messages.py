@@ -24,9 +24,10 @@ from std_msgs.msg import (ColorRGBA, Float64MultiArray, Header, MultiArrayDimens
                           MultiArrayLayout)
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..live import LiveMatch, check_quaternion
-from ..pointcloud import xyz_to_pointcloud2_layout
-from ..pose import matrix_to_quaternion, pose_matrix
+from mf_lpr_ros.live.localiser import LiveMatch
+from mf_lpr_ros.core.pose import check_quaternion
+from mf_lpr_ros.io.pointcloud import xyz_to_pointcloud2_layout
+from mf_lpr_ros.core.pose import matrix_to_quaternion, pose_matrix
 
 # Variance given to the dimensions a planar match does not observe (z, roll, pitch).
 UNOBSERVED_VARIANCE = 1e3

@@ -15,11 +15,12 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from std_msgs.msg import Float64MultiArray, Header
 
-from ..pose import planar, pose_matrix, quaternion_from_yaw
-from ..pose_graph import KeyframeGraph, MissingDependencyError
-from .common import LidarNode, ParameterFault, run_node, sensor_qos
-from .messages import (decode_loop_closure, pose_message_to_matrix, seconds_to_stamp,
-                       set_pose, stamp_to_seconds)
+from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.pose_graph import KeyframeGraph
+from mf_lpr_ros.errors import MissingDependencyError
+from mf_lpr_ros.ros.lidar_node import LidarNode, ParameterFault, run_node, sensor_qos
+from mf_lpr_ros.ros.messages import (decode_loop_closure, pose_message_to_matrix, seconds_to_stamp,
+                                     set_pose, stamp_to_seconds)
 
 
 class PoseGraphNode(LidarNode):

@@ -15,9 +15,9 @@ import rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
-from ..progress import progress_bar
-from ..datasets.base import DatasetError
-from ..datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
+from mf_lpr_ros.progress import progress_bar
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
 
 DEFAULT_TYPES = (CLOUD_TYPE, *POSE_TYPES, "tf2_msgs/msg/TFMessage")
 _DISCOVERY_SETTLE_S = 0.5

@@ -1,0 +1,45 @@
+"""The array primitives the reference banks are written in, on numpy.
+
+SpectralBank and PolarSpectrumIndex do all their array work through these few methods (or
+through operators numpy and torch share: `@`, slicing, reshape), so the torch backend only
+overrides them (backends.torch_backend.TorchArrays) instead of copying the banks' methods.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class NumpyArrays:
+    """Storage and reductions on numpy: host and storage are the same memory."""
+
+    @staticmethod
+    def _from_host(array: np.ndarray):
+        return array
+
+    @staticmethod
+    def _to_host(array) -> np.ndarray:
+        return np.asarray(array)
+
+    @staticmethod
+    def _index(indices) -> np.ndarray:
+        return np.asarray(indices, dtype=np.int64)
+
+    @staticmethod
+    def _empty_scores(count: int):
+        return np.empty(count, dtype=np.float32)
+
+    @staticmethod
+    def _amax(values, axis: int):
+        # max over a leading axis is memory-bound and ~50x cheaper than argmax.
+        return values.max(axis=axis)
+
+    @staticmethod
+    def _argmax_rows(values) -> tuple[np.ndarray, np.ndarray]:
+        """Per column of a 2-D array: the row of its maximum and the maximum, on the host."""
+        rows = values.argmax(axis=0)
+        return rows, values[rows, np.arange(values.shape[1])]
+
+    @staticmethod
+    def _nbytes(array) -> int:
+        return array.nbytes

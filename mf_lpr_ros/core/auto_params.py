@@ -1,0 +1,208 @@
+"""preset "auto": descriptor parameters derived from the scans themselves.
+
+A few scans are measured (SensorProfile) and the descriptor follows from rules, each stated
+where it is applied (auto_descriptor):
+- voxel size: the paper's inverse-linear rule on occupied 1 m voxels per scan
+  (descriptor.auto_voxel_size);
+- height band: the ground is found below the sensor as the densest thin layer of low points,
+  and the band keeps 0.5 m to 4.5 m above it (KITTI's band, -1.2 to 3.0 m at a 1.73 m mount,
+  relative to its ground), so a low mount keeps what a high one keeps;
+- levelling: on when the scans' poses tilt (roll or pitch spread over 3 degrees, a handheld or
+  vehicle-on-slopes sensor) and poses exist;
+- field of view: the horizontal sector that holds points (a Livox Avia sees ~70 degrees) is
+  measured, logged and recorded, but not applied: the wedge footprint
+  (DescriptorParams.field_of_view_deg) left recall on the HKU Avia keyframes unchanged (0.714)
+  and let 2 false closures through where the full footprint published none, so it stays a
+  setting the user turns on.
+What was measured and chosen is returned for the caller to log and to store in the map.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from mf_lpr_ros.config import Config
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.core.descriptor import occupied_unit_voxels, voxel_size_for_density
+from mf_lpr_ros.core.pose import level_points
+
+SAMPLE_SCANS = 12
+GROUND_BIN_M = 0.1
+BAND_ABOVE_GROUND_M = (0.5, 4.5)
+TILT_SPREAD_DEG = 3.0
+AZIMUTH_BINS = 72
+FULL_CIRCLE_BELOW_DEG = 300.0
+
+
+@dataclass(frozen=True)
+class SensorProfile:
+    """What auto measured on sample scans.
+
+    occupied_voxels: mean occupied 1 m voxels per scan (the paper's density measure).
+    ground_below_sensor_m: height of the sensor above the ground (NaN: no ground found).
+    horizontal_fov_deg: width of the sector holding points; heading_deg its centre (0 = +x).
+    tilt_spread_deg: spread (std) of the poses' roll and pitch (NaN without poses).
+    range_p95_m: 95th percentile of horizontal point range.
+    """
+
+    n_scans: int
+    occupied_voxels: float
+    ground_below_sensor_m: float
+    horizontal_fov_deg: float
+    heading_deg: float
+    tilt_spread_deg: float
+    range_p95_m: float
+
+    def to_dict(self) -> dict:
+        return {key: (None if isinstance(value, float) and math.isnan(value) else value)
+                for key, value in dataclasses.asdict(self).items()}
+
+
+def measure_sensor(clouds: list[np.ndarray], orientations: list[np.ndarray] | None = None
+                   ) -> SensorProfile:
+    """A SensorProfile from sample clouds (sensor frame) and, when known, their world_R_sensor
+    (used to level the points before the ground is looked for, and for the tilt spread)."""
+    finite = [np.asarray(c)[:, :3][np.isfinite(np.asarray(c)[:, :3]).all(axis=1)] for c in clouds]
+    finite = [c for c in finite if len(c)]
+    if not finite:
+        raise InvalidCloudError("preset auto needs scans with finite points to measure")
+    tilt = math.nan
+    if orientations is not None and len(orientations) == len(clouds):
+        tilts = np.array([_roll_pitch(r) for r in orientations])
+        tilt = float(np.degrees(tilts.std(axis=0).max()))
+        finite = [level_points(c, r) for c, r in zip(finite, orientations)]
+    points = np.concatenate(finite)
+    horizontal = np.hypot(points[:, 0], points[:, 1])
+    fov, heading = _field_of_view(points[horizontal > 1.0])
+    return SensorProfile(n_scans=len(finite),
+                         occupied_voxels=float(np.mean([occupied_unit_voxels(c) for c in finite])),
+                         ground_below_sensor_m=_ground_depth(points, horizontal),
+                         horizontal_fov_deg=fov, heading_deg=heading, tilt_spread_deg=tilt,
+                         range_p95_m=float(np.percentile(horizontal, 95)))
+
+
+def auto_descriptor(profile: SensorProfile, base: DescriptorParams) -> DescriptorParams:
+    """base with what the profile determines replaced (see the module doc)."""
+    # The paper's rule, capped so the window reaches no farther than the sensor sees.
+    reach = 2.0 * profile.range_p95_m / base.size
+    voxel = round(min(voxel_size_for_density(profile.occupied_voxels), reach), 2)
+    changes: dict = {"voxel_size": voxel}
+    if math.isfinite(profile.ground_below_sensor_m):
+        low, high = BAND_ABOVE_GROUND_M
+        changes["z_min"] = round(low - profile.ground_below_sensor_m, 2)
+        changes["z_max"] = round(high - profile.ground_below_sensor_m, 2)
+    if math.isfinite(profile.tilt_spread_deg):
+        changes["level"] = profile.tilt_spread_deg > TILT_SPREAD_DEG
+    return dataclasses.replace(base, **changes)
+
+
+def auto_config(clouds: list[np.ndarray], base: Config,
+                orientations: list[np.ndarray] | None = None) -> tuple[Config, SensorProfile]:
+    """base with its descriptor derived from the clouds (no longer auto); and the profile."""
+    profile = measure_sensor(clouds, orientations)
+    return dataclasses.replace(base, descriptor=auto_descriptor(profile, base.descriptor),
+                               auto=False), profile
+
+
+def resolve_for_sequence(config: Config, sequence) -> tuple[Config, SensorProfile | None]:
+    """config itself when it is not auto; else derived from SAMPLE_SCANS scans of sequence."""
+    if not config.auto:
+        return config, None
+    clouds, orientations = profile_sequence_scans(
+        sequence.iter_scans(sample_indices(len(sequence))))
+    return auto_config(clouds, config, orientations)
+
+
+def map_metadata(profile: SensorProfile, params: DescriptorParams) -> dict:
+    """What a map built with preset auto records about the choice."""
+    return {"preset": "auto", "sensor_profile": profile.to_dict(),
+            "choice": describe_choice(profile, params)}
+
+
+def sample_indices(n_scans: int, count: int = SAMPLE_SCANS) -> np.ndarray:
+    """count scans spread evenly over a sequence of n_scans."""
+    return np.unique(np.linspace(0, n_scans - 1, min(count, n_scans)).round().astype(np.int64))
+
+
+def describe_choice(profile: SensorProfile, params: DescriptorParams) -> str:
+    """One line for the log: what was measured and chosen."""
+    ground = (f"ground {profile.ground_below_sensor_m:.2f} m below the sensor"
+              if math.isfinite(profile.ground_below_sensor_m) else "no ground found")
+    narrow = (f" (under {FULL_CIRCLE_BELOW_DEG:.0f}: revisits from other headings share "
+              f"no ground)" if profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG else "")
+    return (f"preset auto on {profile.n_scans} scans: {profile.occupied_voxels:.0f} occupied 1 m "
+            f"voxels/scan, 95 % of points within {profile.range_p95_m:.0f} m -> voxel "
+            f"{params.voxel_size:.2f} m; {ground} -> z band [{params.z_min}, {params.z_max}] m; "
+            f"level {params.level}; field of view {profile.horizontal_fov_deg:.0f} deg{narrow}")
+
+
+def _ground_depth(points: np.ndarray, horizontal: np.ndarray) -> float:
+    """The sensor's height above the densest thin layer among the low points nearby; NaN when
+    the low points show no layer."""
+    near = points[(horizontal > 1.0) & (horizontal < 30.0)]
+    if len(near) < 100:
+        return math.nan
+    z = near[:, 2]
+    low = z[z <= np.percentile(z, 50)]
+    low = low[low < 0.0]
+    if len(low) < 50:
+        return math.nan
+    edges = np.arange(low.min(), low.max() + GROUND_BIN_M, GROUND_BIN_M)
+    if len(edges) < 2:
+        return float(-low.mean())
+    counts, edges = np.histogram(low, bins=edges)
+    mode = int(np.argmax(counts))
+    if counts[mode] < 0.05 * len(near):
+        return math.nan
+    return float(-(edges[mode] + edges[mode + 1]) / 2)
+
+
+def _field_of_view(points: np.ndarray) -> tuple[float, float]:
+    """(width, centre) in degrees of the smallest sector holding ~all points' azimuths."""
+    if not len(points):
+        return 360.0, 0.0
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0])) % 360.0
+    counts, _ = np.histogram(azimuth, bins=AZIMUTH_BINS, range=(0.0, 360.0))
+    seen = counts > 0.002 * len(points)
+    if seen.all():
+        return 360.0, 0.0
+    # The largest run of empty bins (circularly) is what the sensor does not see.
+    doubled = np.concatenate([~seen, ~seen])
+    best_length, best_end, run = 0, 0, 0
+    for k, empty in enumerate(doubled):
+        run = run + 1 if empty else 0
+        if run > best_length:
+            best_length, best_end = min(run, AZIMUTH_BINS), k
+    bin_deg = 360.0 / AZIMUTH_BINS
+    width = bin_deg * (AZIMUTH_BINS - best_length)
+    gap_centre = (best_end + 1 - best_length / 2) * bin_deg
+    # The sector seen is the complement of the gap: its centre is opposite the gap's.
+    centre = (gap_centre + 180.0) % 360.0
+    return width, (centre + 180.0) % 360.0 - 180.0
+
+
+def _roll_pitch(orientation: np.ndarray) -> tuple[float, float]:
+    orientation = np.asarray(orientation)
+    pitch = math.asin(float(np.clip(-orientation[2, 0], -1.0, 1.0)))
+    roll = math.atan2(float(orientation[2, 1]), float(orientation[2, 2]))
+    return roll, pitch
+
+
+def profile_sequence_scans(scans: Iterable) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """Clouds and (when every scan has a finite pose) orientations of dataset Scans."""
+    clouds, orientations = [], []
+    for scan in scans:
+        if scan.points is None:
+            raise InvalidCloudError("preset auto measures point clouds; this source gives density "
+                                    "images (use a named preset, e.g. kitti)")
+        clouds.append(scan.points)
+        orientations.append(None if scan.pose is None or not np.isfinite(scan.pose).all()
+                            else scan.pose[:3, :3])
+    posed = all(o is not None for o in orientations)
+    return clouds, (orientations if posed else None)

@@ -1,0 +1,122 @@
+"""The search's array work on PyTorch: a CUDA GPU when there is one, else torch's CPU build.
+
+The banks keep their storage on the device and override only the array primitives
+(TorchArrays, after array_ops.NumpyArrays); what they return to the search (scores, peak
+locations) is numpy, so everything above them is shared with the numpy backend and the two
+give the same matches (test_torch_backend.py). Imported only when SearchParams.backend asks for
+torch (or "auto" finds a CUDA device).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy import fft as sp_fft
+
+from mf_lpr_ros.core.matched_filter import SpectralBank
+from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
+
+
+def cuda_available() -> bool:
+    return torch.cuda.is_available()
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+class TorchArrays:
+    """array_ops.NumpyArrays' primitives on a torch device (set self.device first)."""
+
+    device: torch.device
+
+    def _from_host(self, array: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+
+    @staticmethod
+    def _to_host(tensor: torch.Tensor) -> np.ndarray:
+        return tensor.cpu().numpy()
+
+    def _index(self, indices) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(indices, dtype=np.int64), device=self.device)
+
+    def _empty_scores(self, count: int) -> torch.Tensor:
+        return torch.empty(count, dtype=torch.float32, device=self.device)
+
+    @staticmethod
+    def _amax(values: torch.Tensor, axis: int) -> torch.Tensor:
+        return values.amax(dim=axis)
+
+    @staticmethod
+    def _argmax_rows(values: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        rows = values.argmax(dim=0)
+        return rows.cpu().numpy(), values.gather(0, rows[None])[0].cpu().numpy()
+
+    @staticmethod
+    def _nbytes(tensor: torch.Tensor) -> int:
+        return tensor.numel() * tensor.element_size()
+
+
+class TorchSpectralBank(TorchArrays, SpectralBank):
+    """SpectralBank with the bank and the query operator on a torch device. The operator is
+    built on the device for each query batch (no reused host buffer, unlike numpy's)."""
+
+    def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
+                 device: torch.device | None = None) -> None:
+        self.device = device or default_device()
+        super().__init__(height, width, max_shift, capacity=capacity)
+        self._inverse = self._from_host(self._inverse)
+
+    def _new_bank(self, capacity: int) -> torch.Tensor:
+        return torch.zeros((self.n_freqs, 2 * self.height, capacity), dtype=torch.float32,
+                           device=self.device)
+
+    def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
+        return (self.n_freqs, 2, n_queries, 2 * self.max_shift + 1, 2 * self.height)
+
+    def prepare_queries(self, queries: np.ndarray) -> torch.Tensor:
+        height, shift = self.height, self.max_shift
+        images = self._from_host(np.asarray(queries, dtype=np.float32))
+        spectra = torch.fft.rfft(images, n=self.fft_length, dim=2).permute(2, 0, 1)
+        padded = torch.zeros((2, self.n_freqs, len(images), height + 2 * shift),
+                             dtype=torch.float32, device=self.device)
+        padded[0, :, :, shift: shift + height] = spectra.real
+        padded[1, :, :, shift: shift + height] = spectra.imag
+        # (2, K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
+        real, imag = padded.unfold(3, height, 1).flip(3)
+        top = torch.cat([real, imag], dim=3)
+        bottom = torch.cat([-imag, real], dim=3)
+        operator = torch.stack([top, bottom], dim=1)
+        return operator.reshape(self.n_freqs, -1, 2 * height)
+
+
+class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
+    """PolarSpectrumIndex with the reference spectra on a torch device."""
+
+    def __init__(self, image_size: int, capacity: int = 64,
+                 device: torch.device | None = None) -> None:
+        self.device = device or default_device()
+        super().__init__(image_size, capacity=capacity)
+        self._inverse_real = self._from_host(self._inverse_real)
+        self._inverse_imag = self._from_host(self._inverse_imag)
+
+    def _new_bank(self, capacity: int) -> torch.Tensor:
+        return torch.zeros((self.n_harmonics, capacity, self.n_radii), dtype=torch.complex64,
+                           device=self.device)
+
+
+def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int,
+                   device: torch.device | None = None) -> np.ndarray:
+    """matched_filter.correlate_fft2 on a torch device."""
+    device = device or default_device()
+    height, width = reference.shape
+    shape = (sp_fft.next_fast_len(height + max_shift, real=True),
+             sp_fft.next_fast_len(width + max_shift, real=True))
+    query_spectra = torch.fft.rfft2(torch.from_numpy(np.asarray(queries, np.float32)).to(device),
+                                    s=shape)
+    ref_spectrum = torch.fft.rfft2(torch.from_numpy(np.asarray(reference, np.float32)).to(device),
+                                   s=shape)
+    full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=shape)
+    window = torch.arange(-max_shift, max_shift + 1, device=device)
+    rows, cols = window % shape[0], window % shape[1]
+    return full[:, rows][:, :, cols].cpu().numpy()

@@ -1,0 +1,328 @@
+"""The reference map: descriptors, poses and provenance, stored as one versioned file.
+
+Layout (little-endian):
+
+    magic  b"MFLPRMAP"                       8 bytes
+    format version                           uint32
+    header length H                          uint32
+    CRC32 of the header                      uint32
+    header: UTF-8 JSON, H bytes              parameters, frames, array table
+    padding to a 64-byte boundary, then each array at its recorded offset
+
+Every array carries its CRC32 in the header. Occupancy is stored as packed bits. Loading
+memory-maps the arrays, so a large map costs page cache, not twice its size in RAM; all checks
+(magic, version, header and array checksums, sizes) happen at load, never mid-search.
+Saving writes a temporary file in the same directory, fsyncs it and renames it over the old
+map, so a crash leaves either the old or the new map, never a torn one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mf_lpr_ros import __version__
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.config import descriptor_params_from_dict
+from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
+
+MAGIC = b"MFLPRMAP"
+FORMAT_VERSION = 1
+_PREAMBLE = struct.Struct("<8sIII")
+_ALIGN = 64
+_CRC_BLOCK = 1 << 24
+
+
+class ReferenceMap:
+    """Reference descriptors with their poses, stamps and provenance.
+
+    occupancy_bits: (n, D*D/8) uint8, packed high-resolution occupancy (patch cap applied).
+    poses: (n, 4, 4) world_T_sensor. stamps: (n,) seconds. source_indices: (n,) index of each
+    reference's scan in the sequence it came from. Optional reference clouds (for ICP) are
+    kept as one (P, 3) float32 array with (n+1,) offsets.
+    """
+
+    def __init__(self, params: DescriptorParams, *, frame_id: str = "map",
+                 sensor_frame_id: str = "", metadata: dict[str, Any] | None = None) -> None:
+        self.params = params
+        self.frame_id = frame_id
+        self.sensor_frame_id = sensor_frame_id
+        self.metadata = dict(metadata or {})
+        n_bytes = params.size * params.size // 8
+        self._occupancy_bits = np.zeros((0, n_bytes), dtype=np.uint8)
+        self._poses = np.zeros((0, 4, 4))
+        self._stamps = np.zeros(0)
+        self._source_indices = np.zeros(0, dtype=np.int64)
+        self.cloud_points: np.ndarray | None = None
+        self.cloud_offsets: np.ndarray | None = None
+        self._pending: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray | None]] = []
+
+    def __len__(self) -> int:
+        self._flush_pending()
+        return len(self._stamps)
+
+    @property
+    def occupancy_bits(self) -> np.ndarray:
+        """(n, D*D/8) packed occupancy of every reference, those just appended included."""
+        self._flush_pending()
+        return self._occupancy_bits
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) world_T_sensor of every reference, those just appended included."""
+        self._flush_pending()
+        return self._poses
+
+    @property
+    def stamps(self) -> np.ndarray:
+        self._flush_pending()
+        return self._stamps
+
+    @property
+    def source_indices(self) -> np.ndarray:
+        self._flush_pending()
+        return self._source_indices
+
+    @property
+    def planar_poses(self) -> np.ndarray:
+        """(n, 3) x, y, yaw of every reference."""
+        self._flush_pending()
+        return planar(self.poses)
+
+    @property
+    def has_clouds(self) -> bool:
+        self._flush_pending()
+        return self.cloud_offsets is not None
+
+    def append(self, occupancy: np.ndarray, pose: np.ndarray, stamp: float,
+               source_index: int = -1, cloud: np.ndarray | None = None) -> int:
+        """Add one reference; returns its index. Cheap: arrays are grown in batches."""
+        size = self.params.size
+        if occupancy.shape != (size, size):
+            raise ValueError(f"occupancy must be ({size}, {size}), got {occupancy.shape}")
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise ValueError("reference pose must be a finite 4x4 matrix")
+        if cloud is not None and self._pending_or_stored_without_clouds():
+            raise ValueError("this map keeps no reference clouds; add every reference without one")
+        if cloud is None and self.cloud_offsets is not None:
+            raise ValueError("this map keeps reference clouds; every reference needs one")
+        packed = np.packbits(occupancy.astype(bool).ravel())
+        kept = None if cloud is None else np.asarray(cloud, dtype=np.float32)[:, :3]
+        self._pending.append((packed, pose, float(stamp), int(source_index), kept))
+        return len(self._stamps) + len(self._pending) - 1
+
+    def _pending_or_stored_without_clouds(self) -> bool:
+        if len(self._stamps) and self.cloud_offsets is None:
+            return True
+        return any(entry[4] is None for entry in self._pending)
+
+    def _flush_pending(self) -> None:
+        if not self._pending:
+            return
+        packed, poses, stamps, sources, clouds = zip(*self._pending)
+        self._pending = []
+        self._occupancy_bits = np.concatenate([self._occupancy_bits, np.stack(packed)])
+        self._poses = np.concatenate([self._poses, np.stack(poses)])
+        self._stamps = np.concatenate([self._stamps, np.array(stamps)])
+        self._source_indices = np.concatenate([self._source_indices,
+                                               np.array(sources, np.int64)])
+        if clouds[0] is not None:
+            old_points = self.cloud_points if self.cloud_points is not None else np.zeros((0, 3),
+                                                                                         np.float32)
+            old_offsets = self.cloud_offsets if self.cloud_offsets is not None else np.zeros(1,
+                                                                                            np.int64)
+            lengths = np.array([len(c) for c in clouds], dtype=np.int64)
+            self.cloud_points = np.concatenate([old_points, *clouds])
+            self.cloud_offsets = np.concatenate([old_offsets,
+                                                 old_offsets[-1] + np.cumsum(lengths)])
+
+    def occupancy(self, index: int | slice | np.ndarray) -> np.ndarray:
+        """Unpacked occupancy of reference(s): (D, D) or (k, D, D) bool."""
+        self._flush_pending()
+        size = self.params.size
+        bits = self.occupancy_bits[index]
+        unpacked = np.unpackbits(bits, axis=-1, count=size * size).astype(bool)
+        return unpacked.reshape(bits.shape[:-1] + (size, size))
+
+    def cloud(self, index: int) -> np.ndarray:
+        self._flush_pending()
+        if self.cloud_offsets is None or self.cloud_points is None:
+            raise MapFileError("this map keeps no reference clouds (build it with clouds kept)")
+        return np.asarray(self.cloud_points[self.cloud_offsets[index]: self.cloud_offsets[index + 1]])
+
+    def check_params(self, params: DescriptorParams) -> None:
+        """Refuse descriptor parameters that differ from the ones the map was built with."""
+        ours, theirs = asdict(self.params), asdict(params)
+        differing = {k: (ours[k], theirs[k]) for k in ours if ours[k] != theirs[k]}
+        if differing:
+            detail = ", ".join(f"{k}: map has {a!r}, requested {b!r}" for k, (a, b) in differing.items())
+            raise MapParameterMismatch(
+                f"descriptor parameters differ from the map's ({detail}); rebuild the map or use "
+                "the map's parameters")
+
+    def save(self, path: str | Path) -> None:
+        """Write the map atomically (temporary file, fsync, rename)."""
+        self._flush_pending()
+        path = Path(path)
+        arrays = {
+            "occupancy_bits": np.ascontiguousarray(self.occupancy_bits),
+            "poses": np.ascontiguousarray(self.poses, dtype="<f8"),
+            "stamps": np.ascontiguousarray(self.stamps, dtype="<f8"),
+            "source_indices": np.ascontiguousarray(self.source_indices, dtype="<i8"),
+        }
+        if self.cloud_offsets is not None and self.cloud_points is not None:
+            arrays["cloud_points"] = np.ascontiguousarray(self.cloud_points, dtype="<f4")
+            arrays["cloud_offsets"] = np.ascontiguousarray(self.cloud_offsets, dtype="<i8")
+        table: dict[str, dict[str, Any]] = {}
+        header: dict[str, Any] = {
+            "format_version": FORMAT_VERSION,
+            "writer": f"mf_lpr_ros {__version__}",
+            "n_references": int(len(self.stamps)),
+            "descriptor": asdict(self.params),
+            "frame_id": self.frame_id,
+            "sensor_frame_id": self.sensor_frame_id,
+            "metadata": self.metadata,
+            "arrays": table,
+        }
+        # Offsets depend on the header size, which depends on the offsets: iterate to a fixpoint.
+        header_bytes = b""
+        for _ in range(4):
+            offset = _aligned(_PREAMBLE.size + len(header_bytes))
+            for name, array in arrays.items():
+                table[name] = {"offset": offset, "dtype": array.dtype.str, "shape": list(array.shape),
+                               "crc32": _crc32(array)}
+                offset = _aligned(offset + array.nbytes)
+            encoded = json.dumps(header, sort_keys=True).encode()
+            if encoded == header_bytes:
+                break
+            header_bytes = encoded
+        preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes), zlib.crc32(header_bytes))
+        _write_atomically(path, preamble + header_bytes, arrays, table)
+
+    @classmethod
+    def load(cls, path: str | Path, *, verify: bool = True) -> "ReferenceMap":
+        """Load and validate a map; raises MapFileError naming the problem."""
+        path = Path(path)
+        try:
+            size = path.stat().st_size
+            with open(path, "rb") as handle:
+                preamble = handle.read(_PREAMBLE.size)
+                if len(preamble) < _PREAMBLE.size:
+                    raise MapFileError(f"{path}: truncated map file ({size} bytes, no header)")
+                magic, version, header_len, header_crc = _PREAMBLE.unpack(preamble)
+                if magic != MAGIC:
+                    raise MapFileError(f"{path}: not an mf_lpr_ros map (bad magic {magic!r})")
+                if version > FORMAT_VERSION:
+                    raise MapFileError(
+                        f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
+                        f"this build reads version {FORMAT_VERSION}")
+                if version != FORMAT_VERSION:
+                    raise MapFileError(f"{path}: unsupported map format version {version}")
+                header_bytes = handle.read(header_len)
+        except OSError as error:
+            raise MapFileError(f"cannot read map file {path}: {error}") from error
+        if len(header_bytes) < header_len:
+            raise MapFileError(f"{path}: truncated map file (header cut at {size} bytes)")
+        if zlib.crc32(header_bytes) != header_crc:
+            raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
+        try:
+            header = json.loads(header_bytes)
+            # Maps written before the disc crop existed were cropped square.
+            params = descriptor_params_from_dict({"crop": "square", **header["descriptor"]})
+            n_refs = int(header["n_references"])
+            table = {name: (int(entry["offset"]), np.dtype(entry["dtype"]), tuple(entry["shape"]),
+                            int(entry["crc32"])) for name, entry in header["arrays"].items()}
+        except (KeyError, TypeError, ValueError) as error:
+            raise MapFileError(f"{path}: invalid map header: {error}") from error
+        reference_map = cls(params, frame_id=header.get("frame_id", "map"),
+                            sensor_frame_id=header.get("sensor_frame_id", ""),
+                            metadata=header.get("metadata", {}))
+        loaded: dict[str, np.ndarray] = {}
+        for name, (offset, dtype, shape, crc) in table.items():
+            n_bytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            if offset + n_bytes > size:
+                raise MapFileError(f"{path}: truncated map file (array {name!r} needs bytes up to "
+                                   f"{offset + n_bytes}, file has {size})")
+            if n_bytes == 0:
+                array = np.zeros(shape, dtype=dtype)
+            else:
+                array = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+            if verify and _crc32(array) != crc:
+                raise MapFileError(f"{path}: corrupt map file (checksum mismatch in {name!r})")
+            loaded[name] = array
+        expected_bits = params.size * params.size // 8
+        for name, shape in (("occupancy_bits", (n_refs, expected_bits)), ("poses", (n_refs, 4, 4)),
+                            ("stamps", (n_refs,)), ("source_indices", (n_refs,))):
+            if name not in loaded or loaded[name].shape != shape:
+                raise MapFileError(f"{path}: array {name!r} missing or of the wrong shape")
+        reference_map._occupancy_bits = loaded["occupancy_bits"]
+        reference_map._poses = loaded["poses"]
+        reference_map._stamps = loaded["stamps"]
+        reference_map._source_indices = loaded["source_indices"]
+        if "cloud_offsets" in loaded:
+            reference_map.cloud_points = loaded["cloud_points"]
+            reference_map.cloud_offsets = loaded["cloud_offsets"]
+        return reference_map
+
+
+def _aligned(offset: int) -> int:
+    return (offset + _ALIGN - 1) // _ALIGN * _ALIGN
+
+
+def _as_bytes(array: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+
+
+def _crc32(array: np.ndarray) -> int:
+    view = _as_bytes(array)
+    crc = 0
+    for start in range(0, len(view), _CRC_BLOCK):
+        crc = zlib.crc32(view[start: start + _CRC_BLOCK], crc)
+    return crc
+
+
+def _write_atomically(path: Path, head: bytes, arrays: dict[str, np.ndarray],
+                      table: dict[str, dict[str, Any]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
+    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(temporary, "wb") as handle:
+            handle.write(head)
+            for name, array in arrays.items():
+                handle.write(b"\0" * (table[name]["offset"] - handle.tell()))
+                handle.write(_as_bytes(array))
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Temporary files left by writers that were killed mid-save (their process is gone)."""
+    for stale in path.parent.glob(f".{path.name}.tmp-*"):
+        try:
+            pid = int(stale.name.rsplit("-", 1)[1])
+            os.kill(pid, 0)
+        except ValueError:
+            continue
+        except ProcessLookupError:
+            stale.unlink(missing_ok=True)
+        except PermissionError:
+            continue

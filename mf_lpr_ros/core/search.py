@@ -1,0 +1,415 @@
+"""Two-stage matched-filter search and pose estimation (METHOD.md sections 2 and 3)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mf_lpr_ros.params import SearchParams
+from mf_lpr_ros.core.descriptor import (footprint, pooled_weights, prepare_rotations,
+                                        rotate_occupancy, turns_with_sensor, weighted)
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.backends import make_backend
+from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
+
+# Scale from normalised peak curvature to variance: a peak whose score halves one cell away
+# gets a standard deviation of ~0.3 cell before inflation by low confidence.
+_CURVATURE_TO_VARIANCE = 0.1
+_MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
+_REPORTED_CANDIDATES = 5
+_EXPANDED_LEADERS = 16
+
+# Least-squares fit of f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2 on the 3x3 grid
+# (x along columns, y along rows, both -1..1).
+_grid_y, _grid_x = np.mgrid[-1:2, -1:2]
+_QUADRATIC_FIT = np.linalg.pinv(np.stack([
+    np.ones(9), _grid_x.ravel(), _grid_y.ravel(), _grid_x.ravel() ** 2,
+    _grid_x.ravel() * _grid_y.ravel(), _grid_y.ravel() ** 2], axis=1))
+
+
+@dataclass
+class Hypothesis:
+    """One finalist of the local stage: its reference, the query pose it implies (x, y, yaw in
+    the map frame), its local score and confidence."""
+
+    reference_index: int
+    pose: np.ndarray
+    score: float
+    confidence: float
+
+
+@dataclass
+class MatchResult:
+    """The best reference for a query and the pose it implies.
+
+    shift_m, rotation_rad: the query sensor's position and heading in the reference's sensor
+    frame (the loop-closure constraint). pose: (x, y, yaw) of the query in the map frame.
+    covariance / relative_covariance: 3x3 over (x, y, yaw) in the map / reference frame.
+    score: local peak score, normalised as SearchParams.score_normalisation says.
+    confidence: cosine similarity of query and reference at the best alignment, in [0, 1].
+    distinctiveness: 1 - (best global score of a reference farther than
+        SearchParams.distinct_radius_m from the match) / (the match's global score), in [0, 1];
+        near 0 when another place scores as well (a look-alike), and 0 when no other place
+        was searched (nothing to tell the match apart from).
+    candidates: reference indices by rank (the match first, then the global ranking).
+    hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
+        re-ranking aligned it), the match first, the others by local score, each with the
+        pose it implies.
+    """
+
+    reference_index: int
+    score: float
+    confidence: float
+    shift_m: np.ndarray
+    rotation_rad: float
+    pose: np.ndarray
+    covariance: np.ndarray
+    relative_covariance: np.ndarray
+    candidates: np.ndarray
+    distinctiveness: float = 1.0
+    hypotheses: list[Hypothesis] = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class MatchedFilterIndex:
+    """Searches a ReferenceMap; reference spectra are computed once, when references arrive."""
+
+    def __init__(self, reference_map: ReferenceMap, search: SearchParams) -> None:
+        self.map = reference_map
+        self.params = reference_map.params
+        self.search = search
+        self.covered = footprint(self.params)
+        self.covered_window = footprint(dataclasses.replace(self.params, field_of_view_deg=360.0))
+        if self.covered_window is None:
+            self.covered_window = np.ones((self.params.size,) * 2, dtype=bool)
+        self._map_offset = np.full(2, float(reference_map.metadata.get("sensor_offset_m", 0.0)))
+        self._query_offset = np.zeros(2)
+        low_cell = self.params.voxel_size * self.params.pool
+        self.low_shift = min(math.ceil(search.max_shift_m / low_cell), self.params.low_size - 1)
+        self.high_shift = min(math.ceil(search.max_shift_m / self.params.voxel_size),
+                              self.params.size - 1)
+        n_rotations = round(360 / search.rotation_step_deg)
+        self.global_angles = np.arange(n_rotations) * search.rotation_step_deg
+        if turns_with_sensor(self.params):
+            # Two views of a limited field of view turned by more than its width share no
+            # ground: those rotations can only produce false matches.
+            turn = (self.global_angles + 180.0) % 360.0 - 180.0
+            self.global_angles = self.global_angles[np.abs(turn) < self.params.field_of_view_deg]
+        half = search.local_rotation_range_deg
+        step = search.local_rotation_step_deg
+        n_side = int(np.floor(half / step + 1e-9))
+        self.local_offsets = np.arange(-n_side, n_side + 1) * step
+        # Every rotation table a query can need (the global set and one local set per global
+        # angle), now: memory is then fixed from the first query of a long run.
+        prepare_rotations(self.params.size, [self.global_angles] +
+                          [angle + self.local_offsets for angle in self.global_angles])
+        size = self.params.low_size
+        capacity = max(len(reference_map), 1)
+        backend = make_backend(search.backend, size, self.low_shift, capacity,
+                               prefilter=search.prefilter_top_k > 0)
+        self.backend = backend.name
+        self.bank, self.prefilter = backend.bank, backend.prefilter
+        self._correlate_local = backend.correlate_local
+        self.bank.reserve_operator(len(self.global_angles))
+        self._query_lock = threading.Lock()
+        self.sync()
+
+    def __len__(self) -> int:
+        return len(self.bank)
+
+    @property
+    def nbytes(self) -> int:
+        return self.bank.nbytes + (self.prefilter.nbytes if self.prefilter is not None else 0)
+
+    def sync(self, block: int = 1024) -> int:
+        """Index references added to the map since the last call; returns how many."""
+        start, stop = len(self.bank), len(self.map)
+        for first in range(start, stop, block):
+            last = min(first + block, stop)
+            occupancy = self.map.occupancy(slice(first, last))
+            low = pooled_weights(occupancy, self.params.unoccupied_weight, self.params.pool,
+                                 self.covered)
+            self.bank.append(low)
+            if self.prefilter is not None:
+                self.prefilter.append(low)
+        return stop - start
+
+    def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
+              sensor_offset_m: float = 0.0) -> MatchResult | None:
+        """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
+
+        sensor_offset_m: the query's Scan.sensor_offset_m; the map's is in its metadata. Both
+        enter the pose: the alignment maps descriptor cells, and a sensor off the cell corner
+        turns with the query.
+        Returns None when there is no reference to search. One query at a time per index: the
+        query operator's buffer is shared.
+        """
+        with self._query_lock:
+            self._query_offset = np.full(2, float(sensor_offset_m))
+            return self._query(occupancy, n_active)
+
+    def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
+        n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
+        if n_refs <= 0:
+            return None
+        started = time.perf_counter()
+        w = self.params.unoccupied_weight
+        low_queries = pooled_weights(rotate_occupancy(occupancy, self.global_angles), w,
+                                     self.params.pool, self._query_covered(self.global_angles))
+        operator = self.bank.prepare_queries(low_queries)
+        prepared = time.perf_counter()
+        top_k = self.search.prefilter_top_k
+        volume = None
+        if self.prefilter is not None and n_refs > top_k:
+            # global_angles[0] is 0: the unrotated query.
+            searched = self._expanded(self.prefilter.top(low_queries[0], top_k, n_refs), n_refs)
+            prefilter_done = time.perf_counter()
+            scores, volume = self.bank.best_of_subset(operator, searched, self.search.chunk_size)
+        else:
+            searched = np.arange(n_refs)
+            prefilter_done = time.perf_counter()
+            scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
+        if self.search.score_normalisation == "cosine":
+            scores = scores / np.maximum(self.bank.norms[searched], 1e-6)
+        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
+        order = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
+        order = order[np.argsort(-scores[order], kind="stable")]
+        ranked = searched[order]
+        global_done = time.perf_counter()
+
+        finalists = order[: self.search.top_n]
+        located = (self.bank.peaks(volume, finalists) if volume is not None
+                   else self.bank.locate(operator, searched[finalists]))
+        peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
+                 for reference, (angle_index, *_) in zip(searched[finalists], located)]
+        peaks.sort(key=lambda peak: -peak.score)
+        peaks = self._shortest_shift_first(peaks)
+        result = self._result(peaks[0], ranked)
+        distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
+        nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, operator,
+                                     volume, n_refs)
+        if nearer is not None:
+            peak, result = nearer
+            peaks = [peak] + [other for other in peaks if other is not peak]
+        result.distinctiveness = distinctiveness
+        result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
+                                        result.confidence)]
+        for peak in peaks[1:]:
+            other = self._result(peak, ranked)
+            result.hypotheses.append(Hypothesis(other.reference_index, other.pose, other.score,
+                                                other.confidence))
+        result.timings_ms = {"global": (global_done - started) * 1e3,
+                             "prefilter": (prefilter_done - prepared) * 1e3,
+                             "local": (time.perf_counter() - global_done) * 1e3}
+        return result
+
+    def _shortest_shift_first(self, peaks: list["_LocalPeak"]) -> list["_LocalPeak"]:
+        """peaks (best score first) with the one of least shift among those scoring within
+        rerank_margin of the best moved to the front: of two views of one place, the nearer."""
+        if self.search.rerank_margin <= 0 or len(peaks) < 2:
+            return peaks
+        floor = (1.0 - self.search.rerank_margin) * peaks[0].score
+        close = [k for k, peak in enumerate(peaks) if peak.score >= floor]
+        nearest = min(close, key=lambda k: np.hypot(peaks[k].row - self.high_shift,
+                                                     peaks[k].col - self.high_shift))
+        return [peaks[nearest]] + peaks[:nearest] + peaks[nearest + 1:]
+
+    def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
+                       peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
+                       operator, volume, n_refs: int
+                       ) -> "tuple[_LocalPeak, MatchResult] | None":
+        """The reference nearest the matched pose, aligned, and its match, when it confirms the
+        match.
+
+        The best-scoring reference is often not the nearest: a reference a few metres away
+        that sees more of the same scene can outscore it. The nearest reference (to the pose
+        the match implies) replaces the match when its own alignment scores within
+        rerank_margin of the match's and implies the same query position within
+        rerank_agreement_m: same place, same pose, the nearer view of it.
+        """
+        if self.search.rerank_margin <= 0:
+            return None
+        offsets = self.map.poses[:n_refs, :2, 3] - match.pose[:2]
+        nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
+        if nearest == peaks[0].reference:
+            return None
+        aligned = [peak for peak in peaks if peak.reference == nearest]
+        candidate = aligned[0] if aligned else self._local(
+            occupancy, nearest, self._coarse_angle(nearest, match, searched, operator, volume))
+        if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
+            return None
+        confirmed = self._result(candidate, ranked)
+        if np.hypot(*(confirmed.pose[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
+            return None
+        return candidate, confirmed
+
+    def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray, operator,
+                      volume) -> float:
+        """The global-stage rotation for reference: its own best when the global stage scored
+        it, else the one the match's pose implies (snapped to the global angles, whose
+        rotation tables are prepared)."""
+        column = np.flatnonzero(searched == reference)
+        if len(column):
+            located = (self.bank.peaks(volume, column) if volume is not None
+                       else self.bank.locate(operator, [reference]))
+            return float(self.global_angles[int(located[0][0])])
+        relative = math.degrees(match.pose[2] - planar(self.map.poses[reference])[2])
+        index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
+        return float(self.global_angles[index])
+
+    def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int) -> float:
+        """1 - (best global score among references farther than distinct_radius_m from
+        reference) / (reference's global score); see MatchResult."""
+        own = scores[searched == reference]
+        if not len(own) or own[0] <= 0:
+            return 0.0
+        positions = self.map.poses[searched, :2, 3]
+        offsets = positions - self.map.poses[reference, :2, 3]
+        elsewhere = np.einsum("nc,nc->n", offsets, offsets) > self.search.distinct_radius_m ** 2
+        if not elsewhere.any():
+            return 0.0
+        return float(np.clip(1.0 - scores[elsewhere].max() / own[0], 0.0, 1.0))
+
+    def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
+        """searched, then the references near its leaders that it lacks (prefilter_expand_m)."""
+        radius = self.search.prefilter_expand_m
+        if radius <= 0:
+            return searched
+        positions = self.map.poses[:n_refs, :2, 3]
+        leaders = positions[searched[:_EXPANDED_LEADERS]]
+        offsets = positions[:, None, :] - leaders[None]
+        near = np.flatnonzero((np.einsum("nlc,nlc->nl", offsets, offsets) <= radius ** 2).any(1))
+        return np.concatenate([searched, np.setdiff1d(near, searched, assume_unique=True)])
+
+    def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
+        w = self.params.unoccupied_weight
+        angles = global_angle + self.local_offsets
+        queries = weighted(rotate_occupancy(occupancy, angles), w, self._query_covered(angles))
+        reference_image = weighted(self.map.occupancy(reference), w, self.covered)
+        surface = self._coarse_to_fine(queries, reference_image)
+        reference_norm = float(np.linalg.norm(reference_image))
+        normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
+        a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
+        raw = float(surface[a, row, col])
+        query_norm = float(np.linalg.norm(queries[a]))
+        confidence = raw / max(query_norm * reference_norm, 1e-9)
+        return _LocalPeak(reference=reference, score=raw / normaliser,
+                          confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
+                          surface=surface, angle_index=int(a), row=int(row), col=int(col))
+
+    def _query_covered(self, angles: np.ndarray) -> np.ndarray | None:
+        """The footprint of the query turned by each angle: a field-of-view wedge turns with
+        the sensor; the disc and the square window do not."""
+        if self.covered is None or not turns_with_sensor(self.params):
+            return self.covered
+        return rotate_occupancy(self.covered, angles) & self.covered_window
+
+    def _coarse_to_fine(self, queries: np.ndarray, reference_image: np.ndarray) -> np.ndarray:
+        """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:
+        every other angle first, then the two beside the best of those; the rest stay -inf.
+        The score falls off smoothly over a few degrees, so the peak lies beside the best
+        of every other angle, and the sub-degree fit needs only it and its two neighbours:
+        ~3/4 of the correlations of all angles."""
+        n_angles = len(queries)
+        if n_angles < 5:
+            return self._correlate_local(queries, reference_image, self.high_shift)
+        shifts = 2 * self.high_shift + 1
+        surface = np.full((n_angles, shifts, shifts), -np.inf, dtype=np.float32)
+        coarse = np.arange(0, n_angles, 2)
+        surface[coarse] = self._correlate_local(queries[coarse], reference_image,
+                                                self.high_shift)
+        best = int(coarse[np.argmax(surface[coarse].reshape(len(coarse), -1).max(axis=1))])
+        beside = np.array([k for k in (best - 1, best + 1) if 0 <= k < n_angles])
+        surface[beside] = self._correlate_local(queries[beside], reference_image,
+                                                self.high_shift)
+        return surface
+
+    def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
+        voxel = self.params.voxel_size
+        surface = peak.surface
+        offset, cell_hessian = _subcell_peak(surface[peak.angle_index], peak.row, peak.col)
+        peak_value = max(float(surface[peak.angle_index, peak.row, peak.col]), 1e-9)
+        per_angle = surface.reshape(len(peak.angles), -1).max(axis=1)
+        angle_offset, angle_curvature = _subsample_peak(per_angle, peak.angle_index)
+        step = self.search.local_rotation_step_deg
+        rotation_deg = peak.angles[peak.angle_index] + angle_offset * step
+        shift_cells = np.array([peak.col - self.high_shift + offset[0],
+                                peak.row - self.high_shift + offset[1]])
+        rotation = math.radians(rotation_deg)
+        turn = np.array([[math.cos(rotation), -math.sin(rotation)],
+                         [math.sin(rotation), math.cos(rotation)]])
+        shift_m = shift_cells * voxel + turn @ self._query_offset - self._map_offset
+
+        inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
+        relative_covariance = np.zeros((3, 3))
+        normalised_hessian = -cell_hessian / peak_value
+        if np.all(np.linalg.eigvalsh(normalised_hessian) > 1e-6):
+            relative_covariance[:2, :2] = (np.linalg.inv(normalised_hessian) * voxel ** 2
+                                           * _CURVATURE_TO_VARIANCE * inflation)
+        else:
+            relative_covariance[:2, :2] = np.eye(2) * (self.search.max_shift_m / 2) ** 2
+        yaw_curvature = -angle_curvature / (peak_value * step ** 2)
+        if yaw_curvature > 1e-9:
+            yaw_variance_deg2 = _CURVATURE_TO_VARIANCE / yaw_curvature * inflation
+        else:
+            yaw_variance_deg2 = self.search.local_rotation_range_deg ** 2
+        relative_covariance[2, 2] = math.radians(1.0) ** 2 * yaw_variance_deg2
+
+        reference_pose = planar(self.map.poses[peak.reference])
+        pose = query_pose_from_alignment(reference_pose, shift_m, rotation)
+        candidates = np.concatenate([[peak.reference], ranked[ranked != peak.reference]])
+        return MatchResult(
+            reference_index=peak.reference, score=peak.score, confidence=peak.confidence,
+            shift_m=shift_m, rotation_rad=rotation, pose=pose,
+            covariance=rotate_covariance(relative_covariance, reference_pose[2]),
+            relative_covariance=relative_covariance,
+            candidates=candidates[:_REPORTED_CANDIDATES])
+
+
+@dataclass
+class _LocalPeak:
+    reference: int
+    score: float
+    confidence: float
+    angles: np.ndarray
+    surface: np.ndarray
+    angle_index: int
+    row: int
+    col: int
+
+
+def _subcell_peak(surface: np.ndarray, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-cell offset (dx, dy) of a peak from a quadratic fit on its 3x3 neighbourhood.
+
+    Returns the offset (cells, clipped to +-0.5) and the fitted Hessian (x, y). At the window
+    border the offset along that axis is 0 and the curvature comes from what is available.
+    """
+    rows, cols = surface.shape
+    if 0 < row < rows - 1 and 0 < col < cols - 1:
+        patch = surface[row - 1: row + 2, col - 1: col + 2].astype(np.float64).ravel()
+        _, gx, gy, cxx, cxy, cyy = _QUADRATIC_FIT @ patch
+        hessian = np.array([[2 * cxx, cxy], [cxy, 2 * cyy]])
+        if np.all(np.linalg.eigvalsh(-hessian) > 1e-12):
+            offset = -np.linalg.solve(hessian, [gx, gy])
+            if np.all(np.abs(offset) <= 1.0):
+                return np.clip(offset, -0.5, 0.5), hessian
+    dx, hxx = _subsample_peak(surface[row], col)
+    dy, hyy = _subsample_peak(surface[:, col], row)
+    return np.array([dx, dy]), np.array([[hxx, 0.0], [0.0, hyy]])
+
+
+def _subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:
+    """Parabola through a 1-D peak and its neighbours: (offset in samples, second difference)."""
+    if index <= 0 or index >= len(values) - 1:
+        return 0.0, 0.0
+    left, centre, right = (float(values[index - 1]), float(values[index]),
+                           float(values[index + 1]))
+    curvature = left - 2 * centre + right
+    if curvature >= 0:
+        return 0.0, curvature
+    return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)), curvature

@@ -1,0 +1,147 @@
+"""Verification of matches before they are published: the tests that keep false loop closures
+out of a pose graph (METHOD.md, our additions). One code path for the live nodes, `localise`
+and `evaluate`.
+
+A match is published when, in this order (cheap tests first, each only on what passed before):
+1. its confidence reaches search.min_confidence and its score min_score;
+2. its distinctiveness (best place vs the best other place, MatchResult.distinctiveness)
+   reaches search.min_distinctiveness: a look-alike place scores nearly as well;
+3. geometric verification, where clouds exist and search.verify_fitness > 0: ICP fitness
+   against the reference's stored cloud;
+4. odometry consistency, where the scans' odometry is known and
+   search.consistency_min_support > 0: earlier candidates from the last consistency_window_m
+   of travel must imply the same map-to-odometry alignment. A false match is a one-off; a true
+   revisit repeats along the path, each match agreeing with the odometry between them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from mf_lpr_ros.params import SearchParams
+from mf_lpr_ros.core.pose import compose_planar, relative_planar, wrap_angle
+from mf_lpr_ros.core.search import MatchResult
+
+
+@dataclass
+class Verdict:
+    """Whether a match is published, why not, and what the tests measured."""
+
+    accepted: bool
+    reason: str
+    fitness: float = math.nan
+    support: int = -1
+
+    @property
+    def candidate(self) -> bool:
+        """It passed every test but odometry consistency (it may support later matches)."""
+        return self.support >= 0
+
+
+@dataclass
+class _Candidate:
+    odometry: np.ndarray
+    estimate: np.ndarray
+    travelled_m: float
+
+
+class OdometryConsistency:
+    """Counts the earlier candidates whose implied pose, carried along the odometry to the
+    current query, agrees with the current estimate (SearchParams.consistency_*)."""
+
+    def __init__(self, search: SearchParams) -> None:
+        self.search = search
+        self.travelled_m = 0.0
+        self._last_odometry: np.ndarray | None = None
+        self._candidates: deque[_Candidate] = deque()
+
+    def advance(self, odometry: np.ndarray) -> None:
+        """Record the odometry of a query (every query, matched or not): the window is travel."""
+        odometry = np.asarray(odometry, dtype=np.float64)
+        if self._last_odometry is not None:
+            self.travelled_m += float(np.hypot(*(odometry[:2] - self._last_odometry[:2])))
+        self._last_odometry = odometry
+        window = self.search.consistency_window_m
+        while self._candidates and self.travelled_m - self._candidates[0].travelled_m > window:
+            self._candidates.popleft()
+
+    def support(self, odometry: np.ndarray, estimate: np.ndarray) -> int:
+        """Agreeing earlier candidates; the current one is then remembered as a candidate."""
+        odometry = np.asarray(odometry, dtype=np.float64)
+        estimate = np.asarray(estimate, dtype=np.float64)
+        count = 0
+        if self._candidates:
+            earlier_odometry = np.stack([c.odometry for c in self._candidates])
+            earlier_estimate = np.stack([c.estimate for c in self._candidates])
+            separated = np.hypot(*(earlier_odometry[:, :2] - odometry[:2]).T) >= \
+                self.search.consistency_min_separation_m
+            predicted = compose_planar(earlier_estimate,
+                                       relative_planar(earlier_odometry, odometry))
+            position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
+            yaw_gap = np.degrees(np.abs(wrap_angle(predicted[:, 2] - estimate[2])))
+            count = int(np.count_nonzero(
+                separated & (position_gap <= self.search.consistency_tolerance_m)
+                & (yaw_gap <= self.search.consistency_tolerance_deg)))
+        self._candidates.append(_Candidate(odometry, estimate, self.travelled_m))
+        return count
+
+
+class MatchVerifier:
+    """Applies the tests of the module doc to a stream of matches, in query time order.
+
+    odometry_known: the caller passes each query's odometry pose (planar x, y, yaw in any fixed
+    frame); without it the consistency test cannot run and is skipped (`consistency_active`).
+    """
+
+    def __init__(self, search: SearchParams, *, min_score: float = 0.0,
+                 odometry_known: bool = True) -> None:
+        self.search = search
+        self.min_score = min_score
+        self.consistency_active = search.consistency_min_support > 0 and odometry_known
+        self.consistency = OdometryConsistency(search)
+
+    def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,
+               fitness_of: Callable[[MatchResult], float] | None = None) -> Verdict:
+        """The verdict on one query's match (None: nothing to match against). fitness_of runs
+        the geometric verification (ICP) and is called only when the cheap tests pass."""
+        if self.consistency_active:
+            if odometry is None:
+                raise ValueError("odometry consistency is on (search.consistency_min_support > "
+                                 "0) but this scan has no odometry pose")
+            self.consistency.advance(odometry)
+        if match is None:
+            return Verdict(False, "no reference to search yet")
+        search = self.search
+        reasons = []
+        if match.confidence < search.min_confidence:
+            reasons.append(f"confidence {match.confidence:.3f} < min_confidence "
+                           f"{search.min_confidence}")
+        if match.score < self.min_score:
+            reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
+        if match.distinctiveness < search.min_distinctiveness:
+            reasons.append(f"distinctiveness {match.distinctiveness:.3f} < min_distinctiveness "
+                           f"{search.min_distinctiveness}")
+        if reasons:
+            return Verdict(False, "; ".join(reasons))
+        fitness = math.nan
+        if search.verify_fitness > 0:
+            if fitness_of is None:
+                return Verdict(False, "search.verify_fitness needs the scan's points and the "
+                                      "reference's cloud")
+            fitness = fitness_of(match)
+            if not fitness >= search.verify_fitness:
+                return Verdict(False, f"ICP fitness {fitness:.3f} < verify_fitness "
+                                      f"{search.verify_fitness}", fitness)
+        if not self.consistency_active:
+            return Verdict(True, "accepted", fitness)
+        support = self.consistency.support(odometry, match.pose)
+        if support < search.consistency_min_support:
+            return Verdict(False, f"odometry consistency: {support} earlier match(es) agree, "
+                                  f"consistency_min_support is {search.consistency_min_support}",
+                           fitness, support)
+        return Verdict(True, "accepted", fitness, support)

@@ -1,0 +1,243 @@
+"""The evaluation protocol (METHOD.md section 5): which scans are references and queries, and
+running a method (evaluation.methods) over them into per-query records (evaluation.metrics).
+
+A protocol picks references (one per reference_spacing_m along the reference path, 0 keeps every
+scan) and queries (one per query_spacing_m along the query path, or every query_every-th scan,
+or the scans a dataset's own split names), optionally within fixed frame ranges
+(reference_frames, query_frames: first and last index, inclusive, as BEVPlace splits a KITTI
+sequence into database and queries), and for each query the references it may match (older than
+exclude_recent_frames / exclude_recent_s in the single-sequence loop-closure protocol). A query is
+positive when some reference it may match lies within tolerance_m of it.
+
+Every method (MF-LPR, Scan Context, MapClosures) runs under the same protocol and yields one
+record per query; summarise turns records into the metrics, computed the same way for all.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
+from mf_lpr_ros.core.pose import planar, planar_error
+from mf_lpr_ros.core.references import select_references
+from mf_lpr_ros.datasets import Scan, Sequence
+from mf_lpr_ros.datasets.base import nearest_keys
+from mf_lpr_ros.evaluation.methods import make_method
+from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
+from mf_lpr_ros.progress import progress_bar
+
+_STAMP_MATCH_S = 1e-4
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How references and queries are chosen and when a match counts (see the module doc)."""
+
+    tolerance_m: float
+    reference_spacing_m: float | None = None
+    query_spacing_m: float = 0.0
+    query_every: int = 1
+    exclude_recent_frames: int = 0
+    exclude_recent_s: float = 0.0
+    reference_frames: tuple[int, int] | None = None
+    query_frames: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.tolerance_m > 0:
+            raise ValueError(f"protocol tolerance_m must be > 0, got {self.tolerance_m}")
+        if self.query_every < 1:
+            raise ValueError(f"protocol query_every must be >= 1, got {self.query_every}")
+        for name in ("reference_frames", "query_frames"):
+            frames = getattr(self, name)
+            if frames is not None and not 0 <= frames[0] <= frames[1]:
+                raise ValueError(f"protocol {name} must be (first, last) with 0 <= first <= "
+                                 f"last, got {frames}")
+
+
+@dataclass
+class Selection:
+    """The protocol applied to a pair: reference and query scan indices, and for each query how
+    many references (the oldest first) it may match."""
+
+    references: np.ndarray
+    queries: np.ndarray
+    n_active: np.ndarray
+
+
+def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
+           query: Sequence | None = None, query_stamps: np.ndarray | None = None) -> Selection:
+    """Which scans are references and queries under protocol (query None: the single-sequence
+    loop-closure protocol on reference)."""
+    same_sequence = query is None
+    query_seq = reference if same_sequence else query
+    ref_valid = reference.valid_poses("evaluation") & _in_frames(len(reference), protocol.reference_frames)
+    spacing = protocol.reference_spacing_m if protocol.reference_spacing_m is not None else spacing_m
+    references = select_references(reference.poses[:, :3, 3], spacing, ref_valid)
+    if not len(references):
+        raise ValueError(f"{reference.name}: no scan with a valid pose to use as a reference")
+    query_valid = query_seq.valid_poses("evaluation") & _in_frames(len(query_seq), protocol.query_frames)
+    if query_stamps is not None:
+        query_valid &= _stamps_in(query_seq.stamps, np.asarray(query_stamps, dtype=np.float64))
+    if protocol.query_spacing_m > 0:
+        queries = select_references(query_seq.poses[:, :3, 3], protocol.query_spacing_m,
+                                    query_valid)
+    else:
+        queries = np.flatnonzero(query_valid)
+    queries = queries[::protocol.query_every]
+    n_active = np.full(len(queries), len(references))
+    if same_sequence or protocol.exclude_recent_frames > 0:
+        n_active = np.minimum(n_active, np.searchsorted(
+            references, queries - protocol.exclude_recent_frames, "left"))
+    if protocol.exclude_recent_s > 0:
+        n_active = np.minimum(n_active, np.searchsorted(
+            reference.stamps[references], query_seq.stamps[queries] - protocol.exclude_recent_s,
+            "right"))
+    keep = n_active > 0
+    return Selection(references, queries[keep], n_active[keep])
+
+
+def _in_frames(count: int, frames: tuple[int, int] | None) -> np.ndarray:
+    indices = np.arange(count)
+    if frames is None:
+        return np.ones(count, dtype=bool)
+    return (indices >= frames[0]) & (indices <= frames[1])
+
+
+def _stamps_in(stamps: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    if not len(wanted):
+        return np.zeros(len(stamps), dtype=bool)
+    return nearest_keys(np.sort(wanted), stamps)[1] <= _STAMP_MATCH_S
+
+
+def revisits(stamps: np.ndarray, positions: np.ndarray, spacing_m: float,
+             exclude_recent_s: float, radius_m: float) -> set[int]:
+    """Indices of scans that revisit a place: a reference (one per spacing_m of travel) at
+    least exclude_recent_s older lies within radius_m of them (the loop-closure ground truth)."""
+    references = select_references(positions, spacing_m)
+    found = set()
+    for index, stamp in enumerate(stamps):
+        old = references[stamps[references] <= stamp - exclude_recent_s]
+        if len(old) and np.linalg.norm(positions[old, :2] - positions[index, :2],
+                                       axis=1).min() <= radius_m:
+            found.add(index)
+    return found
+
+
+def run_protocol(method, reference: Sequence, selection: Selection, *,
+                 query: Sequence | None = None, truth_poses: np.ndarray | None = None,
+                 progress: bool = True) -> list[QueryRecord]:
+    """One record per query (see summarise) for method under a selection.
+
+    The method sees the sequences' poses (the map's poses and each query's odometry);
+    truth_poses, the query sequence's ground truth (and the references' in the single-sequence
+    protocol), defaults to the same poses.
+    """
+    same_sequence = query is None
+    query_seq = reference if same_sequence else query
+    wanted_refs = {int(i): k for k, i in enumerate(selection.references)}
+    wanted_queries = set(selection.queries.tolist())
+    ref_descriptors: list = [None] * len(wanted_refs)
+    query_descriptors: dict[int, tuple[Any, float]] = {}
+
+    def describe_query(scan: Scan) -> None:
+        started = time.perf_counter()
+        descriptor = method.describe(scan, reference=False)
+        query_descriptors[scan.index] = (descriptor, (time.perf_counter() - started) * 1e3)
+
+    to_describe = sorted(set(wanted_refs) | (wanted_queries if same_sequence else set()))
+    for scan in progress_bar(reference.iter_scans(to_describe), total=len(to_describe),
+                             desc=f"{method.name}: describe", enabled=progress, unit="scan"):
+        if scan.index in wanted_refs:
+            ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
+        if same_sequence and scan.index in wanted_queries:
+            describe_query(scan)
+    if not same_sequence:
+        for scan in progress_bar(query_seq.iter_scans(selection.queries),
+                                 total=len(selection.queries),
+                                 desc=f"{method.name}: describe queries", enabled=progress,
+                                 unit="scan"):
+            describe_query(scan)
+    method.build(ref_descriptors, reference.poses[selection.references],
+                 reference.stamps[selection.references])
+
+    truth_poses = query_seq.poses if truth_poses is None else truth_poses
+    ref_planar = planar((truth_poses if same_sequence else reference.poses)[selection.references])
+    records = []
+    for query_index, n_active in progress_bar(zip(selection.queries, selection.n_active),
+                                              total=len(selection.queries),
+                                              desc=f"{method.name}: search", enabled=progress,
+                                              unit="query"):
+        descriptor, descriptor_ms = query_descriptors[int(query_index)]
+        retrieval = method.query(descriptor, int(n_active), planar(query_seq.poses[query_index]))
+        truth = planar(truth_poses[query_index])
+        distances = np.linalg.norm(ref_planar[:n_active, :2] - truth[:2], axis=1)
+        found = retrieval.reference
+        rte, rre = planar_error(retrieval.pose, truth) if found >= 0 else (math.inf, math.inf)
+        records.append(QueryRecord(
+            query_index=int(query_index),
+            stamp=float(query_seq.stamps[query_index]),
+            truth=truth.tolist(),
+            estimate=np.asarray(retrieval.pose, dtype=float).tolist(),
+            reference_index=int(selection.references[found]) if found >= 0 else -1,
+            nearest_reference_m=float(distances.min()),
+            retrieved_distance_m=float(distances[found]) if found >= 0 else math.inf,
+            candidate_distances_m=distances[retrieval.candidates[:RECALL_AT_N]].tolist(),
+            rte_m=rte,
+            rre_deg=rre,
+            confidence=float(retrieval.confidence),
+            published=bool(retrieval.published and found >= 0),
+            ms_descriptor=descriptor_ms,
+            ms_global=retrieval.ms_global,
+            ms_local=retrieval.ms_local))
+    return records
+
+
+@dataclass
+class PairResult:
+    """One method on one reference/query pair: the metrics and the per-query records."""
+
+    method: str
+    summary: dict
+    records: list[QueryRecord] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, saved: dict) -> "PairResult":
+        return cls(saved["method"], saved["summary"],
+                   [QueryRecord(**record) for record in saved["records"]])
+
+
+def evaluate(reference: Sequence, config: Config, tolerance_m: float, *,
+             query: Sequence | None = None, exclude_recent_frames: int = 0,
+             exclude_recent_s: float = 0.0, query_every: int = 1, query_spacing_m: float = 0.0,
+             method: str = "mf-lpr", progress: bool = True) -> dict:
+    """One method on one pair (or one sequence's loop closures): summarise's metrics."""
+    protocol = Protocol(tolerance_m, query_spacing_m=query_spacing_m, query_every=query_every,
+                        exclude_recent_frames=exclude_recent_frames,
+                        exclude_recent_s=exclude_recent_s)
+    return evaluate_pair(reference, config, protocol, query=query, method=method,
+                         progress=progress).summary
+
+
+def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
+                  query: Sequence | None = None, query_stamps: np.ndarray | None = None,
+                  method: str = "mf-lpr", progress: bool = True) -> PairResult:
+    """evaluate with a full Protocol, keeping the per-query records. Preset auto derives the
+    descriptor from the reference sequence (summary["auto"] says what it chose)."""
+    selection = select(reference, protocol, config.spacing_m, query=query,
+                       query_stamps=query_stamps)
+    config, profile = resolve_for_sequence(config, reference)
+    runner = make_method(method, config)
+    records = run_protocol(runner, reference, selection, query=query, progress=progress)
+    summary = summarise(records, protocol.tolerance_m, len(selection.references))
+    if profile is not None:
+        summary["auto"] = map_metadata(profile, config.descriptor)
+    return PairResult(runner.name, summary, records)

@@ -1,0 +1,81 @@
+"""Reader for PLY files (ascii, binary little- and big-endian): the vertex x, y, z."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mf_lpr_ros.errors import DatasetError
+
+_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+          "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4",
+          "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_ENDIAN = {"binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """The x, y, z of a PLY file's vertices as (N, 3) float32. Elements before the vertices
+    must have fixed-size records (no lists), which is how point-cloud PLYs are written."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as error:
+        raise DatasetError(f"cannot read PLY {path}: {error}") from error
+    if not raw.startswith(b"ply"):
+        raise DatasetError(f"{path}: not a PLY file (no 'ply' magic)")
+    end = raw.find(b"end_header")
+    if end < 0:
+        raise DatasetError(f"{path}: PLY header has no end_header")
+    body = raw.index(b"\n", end) + 1
+    encoding = None
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in raw[:end].decode("ascii", errors="replace").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                encoding = words[1]
+            elif words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property":
+                if words[1] == "list":
+                    elements[-1][2].append((words[-1], "list"))
+                else:
+                    elements[-1][2].append((words[2], _TYPES[words[1]]))
+        except (IndexError, KeyError, ValueError) as error:
+            raise DatasetError(f"{path}: malformed PLY header line {line!r}") from error
+    if encoding not in ("ascii", *_ENDIAN):
+        raise DatasetError(f"{path}: PLY format {encoding!r} is not supported")
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise DatasetError(f"{path}: PLY has no vertex element")
+    before = elements[:names.index("vertex")]
+    _, n_vertices, properties = elements[names.index("vertex")]
+    if any(kind == "list" for _, _, props in before + [elements[names.index("vertex")]]
+           for _, kind in props):
+        raise DatasetError(f"{path}: list properties before or in the vertex element are not "
+                           "supported")
+    if not {"x", "y", "z"} <= {name for name, _ in properties}:
+        raise DatasetError(f"{path}: PLY vertices have no x, y, z (properties: {properties})")
+    if encoding == "ascii":
+        lines = raw[body:].decode("ascii", errors="replace").splitlines()
+        skip = sum(count for _, count, _ in before)
+        try:
+            table = np.loadtxt(lines[skip:skip + n_vertices], ndmin=2)
+        except ValueError as error:
+            raise DatasetError(f"{path}: malformed ASCII PLY vertices ({error})") from error
+        if len(table) != n_vertices:
+            raise DatasetError(f"{path}: {len(table)} ASCII vertices for {n_vertices} declared")
+        columns = [name for name, _ in properties]
+        return table[:, [columns.index(c) for c in ("x", "y", "z")]].astype(np.float32)
+    endian = _ENDIAN[encoding]
+    offset = body + sum(count * np.dtype([(n, endian + t) for n, t in props]).itemsize
+                        for _, count, props in before)
+    dtype = np.dtype([(name, endian + kind) for name, kind in properties])
+    if len(raw) - offset < n_vertices * dtype.itemsize:
+        raise DatasetError(f"{path}: truncated PLY ({len(raw) - offset} vertex bytes, "
+                           f"{n_vertices * dtype.itemsize} expected)")
+    records = np.frombuffer(raw, dtype=dtype, count=n_vertices, offset=offset)
+    return np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float32)

@@ -1,0 +1,117 @@
+"""The map builder's logic without ROS: references one spacing_m apart, saved atomically."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, map_metadata
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.references import (DescribedScan, SpacingGate, add_references,
+                                        describe_observation, descriptor_points)
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
+from mf_lpr_ros.live.pose_buffer import PairedScan
+
+
+class MapBuilder:
+    """Keeps a reference every spacing_m metres of travel and saves the map atomically.
+
+    With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
+    held back until the descriptor is derived from them (auto_choice then says what was
+    chosen), and then described like every later scan; an existing map keeps its parameters.
+    """
+
+    def __init__(self, config: Config, map_path: str | Path | None, *, frame_id: str = "map",
+                 sensor_frame_id: str = "", keep_clouds: bool = False,
+                 reference_map: ReferenceMap | None = None) -> None:
+        self.map_path = None if map_path is None else Path(map_path)
+        self.keep_clouds = keep_clouds
+        self.auto_choice: str | None = None
+        self.rejected_while_held = 0
+        self._held: list[PairedScan] | None = None
+        if reference_map is None:
+            reference_map = ReferenceMap(config.descriptor, frame_id=frame_id,
+                                         sensor_frame_id=sensor_frame_id,
+                                         metadata={"source": "map_builder",
+                                                   "spacing_m": config.spacing_m})
+            if config.auto:
+                self._held = []
+        elif config.auto:
+            config = replace(config, descriptor=reference_map.params, auto=False)
+        else:
+            reference_map.check_params(config.descriptor)
+        self.config = config
+        self.map = reference_map
+        self.saved_references = len(reference_map)
+        positions = reference_map.poses[:, :3, 3]
+        self._spacing = SpacingGate(config.spacing_m, positions[-1] if len(positions) else None)
+
+    @property
+    def waiting_for_auto(self) -> bool:
+        """Scans are still held back for preset auto."""
+        return self._held is not None
+
+    def offer(self, scan: PairedScan) -> int | None:
+        """Adds the scan as a reference when it is spacing_m from the last one; its index or None
+        (or, for preset auto, the last reference the held-back scans gave once derived)."""
+        if self._held is not None:
+            self._held.append(scan)
+            return self.derive_auto() if len(self._held) >= SAMPLE_SCANS else None
+        return self._offer(scan)
+
+    def derive_auto(self) -> int | None:
+        """Derive the descriptor from the held-back scans (preset auto) and add them; the last
+        reference added or None. Nothing to do when nothing is held."""
+        held = self._held
+        if not held:
+            return None
+        try:
+            resolved, profile = auto_config([scan.points for scan in held], self.config,
+                                            [scan.pose[:3, :3] for scan in held])
+        except InvalidCloudError:
+            self._held = []
+            raise
+        self._held = None
+        self.config = resolved
+        metadata = dict(self.map.metadata, auto=map_metadata(profile, resolved.descriptor))
+        self.map = ReferenceMap(resolved.descriptor, frame_id=self.map.frame_id,
+                                sensor_frame_id=self.map.sensor_frame_id, metadata=metadata)
+        self._spacing = SpacingGate(resolved.spacing_m)
+        self.auto_choice = metadata["auto"]["choice"]
+        last = None
+        for scan in held:
+            try:
+                index = self._offer(scan)
+            except (InvalidCloudError, InvalidPoseError, ValueError):
+                self.rejected_while_held += 1
+                continue
+            last = index if index is not None else last
+        return last
+
+    def _offer(self, scan: PairedScan) -> int | None:
+        position = scan.pose[:3, 3]
+        if not self._spacing.far_enough(position):
+            return None
+        params = self.config.descriptor
+        points = descriptor_points(scan.points, scan.pose, params)
+        occupancy = describe_observation(params, reference=True, stamp=scan.stamp, points=points)
+        index = add_references(self.map, [DescribedScan(
+            occupancy, scan.pose, scan.stamp, scan.index, points if self.keep_clouds else None)])
+        self._spacing.mark(position)
+        return index
+
+    @property
+    def unsaved(self) -> int:
+        return len(self.map) - self.saved_references
+
+    def save(self) -> int:
+        """Writes the map (temporary file, fsync, rename); returns the references now on disk.
+        On failure the previous file is untouched, the in-memory map is kept, and the error
+        propagates for the caller to report."""
+        if self.map_path is None:
+            raise RuntimeError("this map builder has no map_path to save to")
+        count = len(self.map)
+        self.map.save(self.map_path)
+        self.saved_references = count
+        return count

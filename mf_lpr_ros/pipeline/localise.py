@@ -1,0 +1,75 @@
+"""Localising a whole sequence against a map offline, verified as the live localiser verifies."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.pose import planar, planar_error
+from mf_lpr_ros.core.refine import refine_match
+from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
+from mf_lpr_ros.core.verification import MatchVerifier, Verdict
+from mf_lpr_ros.datasets import Sequence
+from mf_lpr_ros.params import SearchParams
+from mf_lpr_ros.pipeline.mapping import describe_scan, prepared_points
+from mf_lpr_ros.progress import progress_bar
+
+
+@dataclass
+class QueryOutcome:
+    """One query's match with its timings and, when ground truth exists, its errors."""
+
+    index: int
+    stamp: float
+    match: MatchResult
+    descriptor_ms: float
+    verdict: Verdict
+    truth: np.ndarray | None = None
+
+    @property
+    def translation_error_m(self) -> float:
+        return planar_error(self.match.pose, self.truth)[0] if self.truth is not None \
+            else float("nan")
+
+    @property
+    def yaw_error_deg(self) -> float:
+        return planar_error(self.match.pose, self.truth)[1] if self.truth is not None \
+            else float("nan")
+
+
+def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: SearchParams, *,
+                      indices: Iterable[int] | None = None, icp: bool = False,
+                      progress: bool = True) -> list[QueryOutcome]:
+    """Match every (selected) scan of a sequence against a map and verify each match as the
+    localiser does (verification.MatchVerifier; the sequence's poses, when every scan has one,
+    serve as odometry). icp: refine every pose by ICP against the map's reference clouds."""
+    if icp and not reference_map.has_clouds:
+        raise ValueError("ICP refinement needs a map that keeps reference clouds "
+                         "(build it with --keep-clouds)")
+    index = MatchedFilterIndex(reference_map, search)
+    posed = sequence.fully_posed
+    verifier = MatchVerifier(search, odometry_known=posed)
+    outcomes = []
+    selected = list(range(len(sequence))) if indices is None else list(indices)
+    for scan in progress_bar(sequence.iter_scans(selected), total=len(selected), desc="localise",
+                             enabled=progress, unit="scan"):
+        started = time.perf_counter()
+        occupancy = describe_scan(scan, reference_map.params, reference=False)
+        descriptor_ms = (time.perf_counter() - started) * 1e3
+        match = index.query(occupancy, sensor_offset_m=scan.sensor_offset_m)
+        geometric = None
+        if reference_map.has_clouds and scan.points is not None:
+            points = prepared_points(scan, reference_map.params)
+
+            def geometric(found):
+                return refine_match(found, points, reference_map).fitness
+        verdict = verifier.verify(match, planar(scan.pose) if posed else None, geometric)
+        if icp and np.isnan(verdict.fitness) and geometric is not None:
+            geometric(match)
+        truth = planar(scan.pose) if scan.pose is not None and np.isfinite(scan.pose).all() else None
+        outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, verdict, truth))
+    return outcomes

@@ -1,0 +1,81 @@
+"""Maps from dataset sequences: which scans become references, described as the live map
+builder describes them (mf_lpr_ros.core.references), with the preset auto resolved first."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.references import (DescribedScan, add_references, describe_observation,
+                                        descriptor_points, select_references)
+from mf_lpr_ros.datasets import Scan, Sequence
+from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.progress import progress_bar
+
+
+def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> np.ndarray:
+    """Occupancy of a scan, from its points or its ready density image."""
+    if scan.density is None and scan.points is None:
+        raise ValueError(f"scan {scan.index} has neither points nor a density image")
+    points = None if scan.density is not None else prepared_points(scan, params)
+    return describe_observation(params, reference=reference, stamp=scan.stamp, points=points,
+                                density=scan.density, density_pixel_m=scan.density_pixel_m)
+
+
+def prepared_points(scan: Scan, params: DescriptorParams) -> np.ndarray:
+    """The scan's points in the descriptor's frame (levelled when params.level)."""
+    if scan.points is None:
+        raise ValueError(f"scan {scan.index} has no points")
+    return descriptor_points(scan.points, scan.pose, params)
+
+
+def described_scan(scan: Scan, params: DescriptorParams, *, reference: bool = True,
+                   keep_cloud: bool = False) -> DescribedScan:
+    """A scan described (as a reference by default), with its cloud when keep_cloud."""
+    return DescribedScan(describe_scan(scan, params, reference=reference), scan.pose, scan.stamp,
+                         scan.index, prepared_points(scan, params) if keep_cloud else None,
+                         scan.sensor_offset_m)
+
+
+@dataclass
+class ReferencePlan:
+    """The references a sequence gives a map, and the map they go into."""
+
+    indices: np.ndarray
+    config: Config
+    name: str
+    frame_id: str
+    metadata: dict
+
+    def new_map(self, **metadata) -> ReferenceMap:
+        return ReferenceMap(self.config.descriptor, sensor_frame_id=self.frame_id,
+                            metadata=dict(self.metadata, **metadata))
+
+
+def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
+    """One reference every config.spacing_m metres among the posed scans; preset auto derives
+    the descriptor from the sequence and records the choice in the map's metadata."""
+    valid = sequence.valid_poses("a map")
+    indices = select_references(sequence.poses[:, :3, 3], config.spacing_m, valid)
+    resolved, profile = resolve_for_sequence(config, sequence)
+    metadata = {"source": sequence.name, "spacing_m": resolved.spacing_m}
+    if profile is not None:
+        metadata["auto"] = map_metadata(profile, resolved.descriptor)
+    return ReferencePlan(indices, resolved, sequence.name, getattr(sequence, "frame_id", ""),
+                         metadata)
+
+
+def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
+              progress: bool = True) -> ReferenceMap:
+    """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres."""
+    plan = plan_references(sequence, config)
+    reference_map = plan.new_map()
+    scans = progress_bar(sequence.iter_scans(plan.indices), total=len(plan.indices),
+                         desc="build map", enabled=progress, unit="scan")
+    add_references(reference_map, (described_scan(scan, plan.config.descriptor,
+                                                  keep_cloud=keep_clouds) for scan in scans))
+    return reference_map
