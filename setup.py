@@ -33,7 +33,7 @@ setup(
             "mf-lpr = mf_lpr_ros.cli.commands:main",
             "map_builder = mf_lpr_ros.ros.map_builder:main",
             "localiser = mf_lpr_ros.ros.localiser:main",
-            "managed_localiser = mf_lpr_ros.ros.localiser:managed_main",
+            "managed_localiser = mf_lpr_ros.ros.managed_localiser:main",
             "pose_graph = mf_lpr_ros.ros.pose_graph:main",
         ],
     },

@@ -16,7 +16,8 @@ from std_srvs.srv import Trigger
 
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
-from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp, stamp_to_seconds
+from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from test_ros_nodes import errors, planar_of_message
 
 # nav2 AMCL's /initialpose subscription: reliable, volatile.

@@ -20,7 +20,8 @@ from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message, points_to_pointcloud2,
-                                     seconds_to_stamp, stamp_to_seconds)
+                                     seconds_to_stamp)
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.ros.replay import replay_bag
 from test_ros_nodes import errors, planar_of_message
 

@@ -8,12 +8,13 @@ header stamp and composed with the sensor extrinsic (base_T_sensor).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 import numpy as np
 
 from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
-from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix
+from mf_lpr_ros.core.pose import interpolate_poses
+from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.datasets.base import Scan, Sequence
 
@@ -21,19 +22,6 @@ CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
               "geometry_msgs/msg/PoseWithCovarianceStamped")
 DEFAULT_MAX_POSE_GAP_S = 1.0
-
-
-def stamp_seconds(stamp: Any) -> float:
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-
-
-def pose_message_matrix(message: Any) -> np.ndarray:
-    """world_T_child of an Odometry / PoseStamped / PoseWithCovarianceStamped message."""
-    pose = message.pose
-    if hasattr(pose, "pose"):
-        pose = pose.pose
-    p, q = pose.position, pose.orientation
-    return pose_matrix(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
 
 
 def open_bag(path: Path):
@@ -94,7 +82,7 @@ class RosbagSequence(Sequence):
         connections = [c for c in reader.connections if c.topic == self.cloud_topic]
         for connection, _, raw in reader.messages(connections=connections):
             message = reader.deserialize(raw, connection.msgtype)
-            stamps.append(stamp_seconds(message.header.stamp))
+            stamps.append(stamp_to_seconds(message.header.stamp))
             frame_id = message.header.frame_id
         return stamps, frame_id
 
@@ -106,10 +94,10 @@ class RosbagSequence(Sequence):
         for connection, _, raw in reader.messages(connections=connections):
             message = reader.deserialize(raw, connection.msgtype)
             try:
-                poses.append(pose_message_matrix(message))
+                poses.append(pose_message_to_matrix(message))
             except ValueError:
                 continue  # an invalid quaternion: that sample is skipped, neighbours interpolate
-            stamps.append(stamp_seconds(message.header.stamp))
+            stamps.append(stamp_to_seconds(message.header.stamp))
         order = np.argsort(stamps, kind="stable")
         return np.asarray(stamps)[order], np.asarray(poses).reshape(-1, 4, 4)[order]
 

@@ -30,7 +30,8 @@ from mf_lpr_ros.ros.graph import RosGraph
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.pose_graph import PoseGraphNode
-from mf_lpr_ros.ros.messages import decode_loop_closure, stamp_to_seconds
+from mf_lpr_ros.ros.messages import decode_loop_closure
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.ros.replay import replay_bag
 
 # Bump when the simulator's output changes, so cached bags are rebuilt.

@@ -12,10 +12,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, QoSReliabilityPolicy
 
-
-_DISCOVERY_SETTLE_S = 0.5
+from mf_lpr_ros.ros.qos import sensor_qos, wait_for_subscribers
 
 
 class RosGraph:
@@ -47,13 +45,12 @@ class RosGraph:
         return node
 
     def publisher(self, message_type, topic: str, reliable: bool = True):
-        qos = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE if reliable
-                         else QoSReliabilityPolicy.BEST_EFFORT)
-        return self.node.create_publisher(message_type, topic, qos)
+        return self.node.create_publisher(message_type, topic, sensor_qos(100, reliable))
 
     def collect(self, message_type, topic: str) -> list:
         received: list = []
-        self.node.create_subscription(message_type, topic, received.append, 100)
+        self.node.create_subscription(message_type, topic, received.append,
+                                      sensor_qos(100, reliable=True))
         return received
 
     @staticmethod
@@ -66,11 +63,8 @@ class RosGraph:
         return predicate()
 
     def wait_for_subscribers(self, publisher, count: int = 1, timeout_s: float = 15.0) -> None:
-        assert self.wait_for(lambda: publisher.get_subscription_count() >= count, timeout_s), \
+        assert wait_for_subscribers([publisher], count, timeout_s), \
             f"no subscriber on {publisher.topic_name} after {timeout_s} s"
-        # Discovery is not symmetric: the subscriber may match this writer a moment later,
-        # and a best-effort subscription drops what arrives before.
-        time.sleep(_DISCOVERY_SETTLE_S)
 
     def stop(self, node) -> None:
         """Finish a node (its shutdown work) and remove it from the graph."""

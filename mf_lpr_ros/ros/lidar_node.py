@@ -1,4 +1,4 @@
-"""What both nodes share: parameters, the scan and pose inputs, and checked decoding."""
+"""What the LiDAR nodes share: the scan and pose inputs, checked decoding, and running a node."""
 
 from __future__ import annotations
 
@@ -13,48 +13,27 @@ from typing import Any, Callable
 import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.signals import SignalHandlerOptions
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 
-from mf_lpr_ros.config import Config, config_from_flat, flat_parameters, preset
-from mf_lpr_ros.errors import ConfigError
-from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
+from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.io.pointcloud import decode_points
 from mf_lpr_ros.live.pose_buffer import PoseBuffer
-from mf_lpr_ros.core.pose import check_quaternion
-from mf_lpr_ros.core.pose import pose_matrix
-from mf_lpr_ros.ros.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.ros.params import POSE_SOURCES, InputSettings, NodeParameters, ParameterFault
+from mf_lpr_ros.ros.qos import sensor_qos
 
-POSE_SOURCES = {"odom": ("odom", Odometry), "pose": ("pose", PoseStamped),
-                "pose_with_covariance": ("pose", PoseWithCovarianceStamped)}
 _LOG_REPEAT_S = 2.0
 # Longest wait before a stop request is noticed.
 _SPIN_TIMEOUT_S = 0.1
 
 
-def sensor_qos(depth: int, reliable: bool = False) -> QoSProfile:
-    """Best effort by default: it matches sensor drivers (best effort) and recorders (reliable)
-    alike, but drops messages under load. Reliable loses nothing from reliable publishers
-    (bag replays, most drivers) and cannot connect to best-effort ones."""
-    return QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=QoSReliabilityPolicy.RELIABLE if reliable
-                      else QoSReliabilityPolicy.BEST_EFFORT)
-
-
-class ParameterFault(ConfigError):
-    """A node parameter is refused at start-up; the message names it."""
-
-
-class LidarNodeMixin:
+class LidarNodeMixin(NodeParameters):
     """What a node fed by PointCloud2 scans and, optionally, a pose stream needs, for plain
     (rclpy Node) and managed (LifecycleNode) nodes alike: call init_lidar_state first."""
+
+    inputs: InputSettings
 
     def init_lidar_state(self) -> None:
         self.counters: Counter[str] = Counter()
@@ -64,67 +43,7 @@ class LidarNodeMixin:
     def finish(self) -> None:
         """Work left at shutdown (e.g. the final map save); nodes override it."""
 
-    # --- parameters -------------------------------------------------------------------
-    def declare_config(self) -> tuple[Config, dict[str, Any]]:
-        """The preset named by 'preset' with every 'descriptor.*', 'search.*' and 'spacing_m'
-        parameter given explicitly (params file or --ros-args -p) applied on top. Returns the
-        config and the explicit values; effective values are written back for `ros2 param`."""
-        preset_name = self.typed_parameter("preset", "default", "parameter preset (config/*.yaml)")
-        try:
-            base = preset(preset_name)
-        except ConfigError as error:
-            raise ParameterFault(str(error)) from None
-        explicit: dict[str, Any] = {}
-        for name in flat_parameters(base):
-            self.declare_parameter(name, None, ParameterDescriptor(
-                dynamic_typing=True, description="see mf_lpr_ros/config.py"))
-            value = self.get_parameter(name).value
-            if value is not None:
-                explicit[name] = list(value) if isinstance(value, (list, tuple)) else value
-        try:
-            config = config_from_flat(explicit, base)
-        except ConfigError as error:
-            raise ParameterFault(str(error)) from None
-        self.set_parameters([Parameter(name, value=value)
-                             for name, value in flat_parameters(config).items()])
-        return config, explicit
-
-    def typed_parameter(self, name: str, default: Any, description: str,
-                        check: Callable[[Any], bool] | None = None,
-                        expectation: str = "") -> Any:
-        try:
-            value = self.declare_parameter(
-                name, default, ParameterDescriptor(description=description)).value
-        except ParameterException as error:
-            raise ParameterFault(f"parameter {name}: {error}") from None
-        if check is not None and not check(value):
-            raise ParameterFault(f"parameter {name} must be {expectation}, got {value!r}")
-        return value
-
-    def declare_extrinsic(self) -> np.ndarray:
-        values = self.typed_parameter(
-            "extrinsic", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-            "base_T_sensor as [x, y, z, qx, qy, qz, qw]: the sensor's pose on the robot",
-            lambda v: len(v) == 7 and all(math.isfinite(x) for x in v),
-            "7 finite numbers [x, y, z, qx, qy, qz, qw]")
-        try:
-            check_quaternion(np.array(values[3:]), "extrinsic")
-        except InvalidPoseError as error:
-            raise ParameterFault(f"parameter extrinsic: {error}") from None
-        return pose_matrix(np.array(values[:3]), np.array(values[3:]))
-
-    def freeze_parameters(self) -> None:
-        """Parameters are read at start-up; refuse later changes instead of ignoring them."""
-        self.add_on_set_parameters_callback(lambda _: SetParametersResult(
-            successful=False, reason="mf_lpr_ros reads its parameters at start-up; restart "
-                                     "the node to change them"))
-
     # --- inputs -------------------------------------------------------------------------
-    def declare_reliable_qos(self) -> bool:
-        return self.typed_parameter(
-            "reliable_qos", False, "subscribe reliably (lossless from reliable publishers such "
-            "as bag replays; cannot connect to best-effort publishers)")
-
     def subscribe_poses(self, source: str, buffer: PoseBuffer,
                         on_pose: Callable[[], None], reliable: bool = False):
         """Subscribe to the pose source; returns the subscription."""
@@ -145,11 +64,11 @@ class LidarNodeMixin:
         self.pose_frame_id = ""
         return self.create_subscription(message_type, topic, received, sensor_qos(100, reliable))
 
-    def decode_scan(self, message: PointCloud2, max_points: int, expected_frame: str,
-                    future_tolerance_s: float) -> tuple[float, np.ndarray] | None:
-        """(stamp, points) of a valid scan; None after logging why it was rejected."""
-        from mf_lpr_ros.io.pointcloud import decode_points
-
+    def decode_scan(self, message: PointCloud2) -> tuple[float, np.ndarray] | None:
+        """(stamp, points) of a valid scan (as self.inputs asks); None after logging why it was
+        rejected."""
+        expected_frame = self.inputs.sensor_frame_id
+        future_tolerance_s = self.inputs.future_tolerance_s
         self.counters["scans_received"] += 1
         stamp = stamp_to_seconds(message.header.stamp)
         frame = message.header.frame_id
@@ -164,7 +83,7 @@ class LidarNodeMixin:
                        f"node's clock ({self.now_seconds():.3f})")
         if problem is None:
             try:
-                points = decode_points(message, max_points)
+                points = decode_points(message, self.inputs.max_points)
             except (InvalidCloudError, ValueError, TypeError) as error:
                 problem = str(error)
         if problem is not None:

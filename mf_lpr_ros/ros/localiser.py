@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,9 +29,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
-from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
@@ -42,24 +39,21 @@ from visualization_msgs.msg import MarkerArray
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.errors import InvalidPoseError
-from mf_lpr_ros.live.localiser import LiveMatch, Localiser, relative_transform, relocalised_pose
+from mf_lpr_ros.live.localiser import Localiser, relative_transform, relocalised_pose
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
-from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
+from mf_lpr_ros.errors import MapParameterMismatch
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.ros.lidar_node import (POSE_SOURCES, LidarNodeMixin, ParameterFault, run_node,
-                                       sensor_qos)
+from mf_lpr_ros.ros.lidar_node import run_node
+from mf_lpr_ros.ros.localiser_params import LIO_SAM_TOPIC, LocaliserParameters
+from mf_lpr_ros.ros.params import NO_POSES, ParameterFault
+from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 from mf_lpr_ros.ros.messages import (candidates_message, confidences_message, diagnostics_message,
                                      lio_sam_loop_message, loop_closure_message, match_markers,
                                      relocalisation_message)
 
-LOOP_CLOSURE_FORMATS = ("mf_lpr", "lio_sam")
-LIO_SAM_TOPIC = "lio_loop/loop_closure_detection"
-PUBLISH_MODES = ("on_request", "continuous")
 # Reliable (AMCL's /initialpose subscription) and transient local: a late subscriber still gets
 # the last pose.
-LATCHED_POSE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
-                              reliability=QoSReliabilityPolicy.RELIABLE,
-                              durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED_POSE_QOS = latched_qos()
 
 
 @dataclass
@@ -79,99 +73,11 @@ class _Request:
     answer: Future = field(default_factory=Future)
 
 
-@dataclass
-class _Settings:
-    """The localiser's node parameters, read once at construction."""
-
-    config: Config
-    explicit: dict
-    map_path: str
-    pose_source: str
-    exclude_recent_s: float
-    min_score: float
-    max_pose_gap_s: float
-    diagnostics_period_s: float
-    map_frame_id: str
-    reliable: bool
-
-
-class LocaliserLogic(LidarNodeMixin):
+class LocaliserLogic(LocaliserParameters):
     """The localiser on any rclpy node class. Its life cycle, in the order a managed node goes
     through it: declare_settings (parameters; a bad one stops start-up), configure (the map,
     the search, publishers, the service, the search thread), activate (subscriptions,
     diagnostics), deactivate (they stop), cleanup (everything configure made is freed)."""
-
-    def declare_settings(self) -> None:
-        config, explicit = self.declare_config()
-        self.mode = self.typed_parameter("mode", "relocalise", "relocalise or loop_closure",
-                                         lambda v: v in Localiser.MODES,
-                                         f"one of {Localiser.MODES}")
-        map_path = self.typed_parameter("map_path", "", "map file (relocalise mode)")
-        sources = ["none", *sorted(POSE_SOURCES)]
-        pose_source = self.typed_parameter(
-            "pose_source", "none", "poses of the live scans: needed by loop_closure mode (to "
-            "grow the map) and by descriptor.level (roll/pitch)", lambda v: v in sources,
-            f"one of {sources}")
-        self.extrinsic = self.declare_extrinsic()
-        exclude_recent_s = self.typed_parameter(
-            "exclude_recent_s", 30.0, "loop_closure: ignore references younger than this",
-            lambda v: v >= 0, ">= 0")
-        min_score = self.typed_parameter("min_score", 0.0, "accept matches scoring at least this")
-        max_pose_gap_s = self.typed_parameter("max_pose_gap_s", 1.0,
-                                              "largest gap between pose samples interpolated "
-                                              "across", lambda v: v > 0, "> 0")
-        self.publish_markers = self.typed_parameter("publish_markers", True,
-                                                    "publish RViz markers on 'markers'")
-        diagnostics_period_s = self.typed_parameter("diagnostics_period_s", 1.0,
-                                                    "seconds between diagnostics",
-                                                    lambda v: v > 0, "> 0")
-        self.max_points = self.typed_parameter("max_points", 2_000_000,
-                                               "scans with more points are rejected",
-                                               lambda v: v > 0, "> 0")
-        self.sensor_frame_id = self.typed_parameter(
-            "sensor_frame_id", "", "accept only scans in this frame ('' = any)")
-        map_frame_id = self.typed_parameter("map_frame_id", "",
-                                            "frame of published poses ('' = the map's)")
-        self.future_tolerance_s = self.typed_parameter(
-            "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
-            "(0 = no check)", lambda v: v >= 0, ">= 0")
-        publish_mode = self.typed_parameter(
-            "publish_mode", "auto", "on_request: publish relocalisation once per "
-            "~/relocalise call (nav2); continuous: for every accepted scan; auto: on_request "
-            "in relocalise mode, continuous in loop_closure mode",
-            lambda v: v in ("auto", *PUBLISH_MODES), f"one of {('auto', *PUBLISH_MODES)}")
-        self.request_timeout_s = self.typed_parameter(
-            "request_timeout_s", 10.0, "a ~/relocalise call fails when no scan passes "
-            "verification within this many seconds", lambda v: v > 0, "> 0")
-        self.loop_closure_formats = set(self.typed_parameter(
-            "loop_closure_format", ["mf_lpr"], "loop-closure messages to publish: mf_lpr "
-            "(labelled array on 'loop_closure'), lio_sam ([query_s, reference_s] on "
-            f"'{LIO_SAM_TOPIC}'); several allowed",
-            lambda v: len(v) > 0 and set(v) <= set(LOOP_CLOSURE_FORMATS),
-            f"a non-empty list of {LOOP_CLOSURE_FORMATS}"))
-        reliable = self.declare_reliable_qos()
-        self.freeze_parameters()
-        self.publish_mode = publish_mode if publish_mode != "auto" else \
-            "continuous" if self.mode == "loop_closure" else "on_request"
-        if "lio_sam" in self.loop_closure_formats and self.mode != "loop_closure":
-            raise ParameterFault("parameter loop_closure_format lio_sam needs mode loop_closure: "
-                                 "LIO-SAM maps both stamps to its own keyframes, so the "
-                                 "reference must come from the same session")
-        if self.mode == "loop_closure" and pose_source == "none":
-            raise ParameterFault("parameter pose_source must name a pose stream in loop_closure "
-                                 "mode (the map grows from the robot's posed scans)")
-        self.settings = _Settings(config, explicit, map_path, pose_source, exclude_recent_s,
-                                  min_score, max_pose_gap_s, diagnostics_period_s, map_frame_id,
-                                  reliable)
-        # Scan arrival to published pose (accepted matches), and to any result.
-        self.latencies_ms: deque[float] = deque(maxlen=10_000)
-        self.result_latencies_ms: deque[float] = deque(maxlen=10_000)
-        self.searched_stamps: deque[float] = deque(maxlen=100_000)
-        self.last: LiveMatch | None = None
-        self.localiser: Localiser | None = None
-        self._inputs: list = []
-        self._diagnostics_timer = None
-        self._wake = threading.Condition()
 
     def configure(self, create_publisher) -> None:
         """Load the map and build the search; create_publisher is the node's publisher factory
@@ -185,21 +91,21 @@ class LocaliserLogic(LidarNodeMixin):
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
-        if config.descriptor.level and settings.pose_source == "none":
+        if config.descriptor.level and self.inputs.pose_source == NO_POSES:
             raise ParameterFault("parameter pose_source must name a pose stream: "
                                  "descriptor.level needs each scan's roll and pitch")
         try:
             self.localiser = Localiser(reference_map, config, mode=self.mode,
                                        exclude_recent_s=settings.exclude_recent_s,
                                        min_score=settings.min_score,
-                                       odometry_known=settings.pose_source != "none")
+                                       odometry_known=self.inputs.pose_source != NO_POSES)
         except ValueError as error:
             raise ParameterFault(str(error)) from None
-        self.map_frame_id = settings.map_frame_id or reference_map.frame_id or "map"
+        self.map_frame_id = self.inputs.map_frame_id or reference_map.frame_id or "map"
         self.synchroniser = None
-        if settings.pose_source != "none":
-            self.poses = PoseBuffer(max_gap_s=settings.max_pose_gap_s)
-            self.synchroniser = ScanPoseSynchroniser(self.poses, self.extrinsic)
+        if self.inputs.pose_source != NO_POSES:
+            self.poses = PoseBuffer(max_gap_s=self.inputs.max_pose_gap_s)
+            self.synchroniser = ScanPoseSynchroniser(self.poses, self.inputs.extrinsic)
         self._publishers = []
 
         def publisher(message_type, topic, qos):
@@ -244,10 +150,10 @@ class LocaliserLogic(LidarNodeMixin):
         """Subscribe to the scans (and poses) and start the diagnostics."""
         settings = self.settings
         if self.synchroniser is not None:
-            self._inputs.append(self.subscribe_poses(settings.pose_source, self.poses,
-                                                     self._pair, settings.reliable))
+            self._inputs.append(self.subscribe_poses(self.inputs.pose_source, self.poses,
+                                                     self._pair, self.inputs.reliable))
         self._inputs.append(self.create_subscription(PointCloud2, "points", self._on_scan,
-                                                     sensor_qos(5, settings.reliable)))
+                                                     sensor_qos(5, self.inputs.reliable)))
         self._diagnostics_timer = self.create_timer(settings.diagnostics_period_s,
                                                     self._publish_diagnostics)
 
@@ -296,8 +202,7 @@ class LocaliserLogic(LidarNodeMixin):
     # --- input (executor thread) -----------------------------------------------------------
     def _on_scan(self, message: PointCloud2) -> None:
         received = time.perf_counter()
-        decoded = self.decode_scan(message, self.max_points, self.sensor_frame_id,
-                                   self.future_tolerance_s)
+        decoded = self.decode_scan(message)
         if decoded is None:
             return
         seconds, points = decoded
@@ -374,7 +279,7 @@ class LocaliserLogic(LidarNodeMixin):
             self.get_logger().debug(f"match rejected at {scan.seconds:.3f}: {result.reason}")
             return
         reference_pose = self.localiser.reference_pose(match.reference_index)
-        world_T_base = relocalised_pose(match, reference_pose, self.extrinsic)
+        world_T_base = relocalised_pose(match, reference_pose, self.inputs.extrinsic)
         with self._wake:
             answering = [r for r in self._requests if r.asked <= scan.received]
             self._requests = [r for r in self._requests if r.asked > scan.received]
@@ -400,7 +305,7 @@ class LocaliserLogic(LidarNodeMixin):
         self.relocalisation_pub.publish(relocalisation_message(
             scan.stamp, self.map_frame_id, world_T_base, match.covariance))
         hypotheses = [relocalised_pose(h, self.localiser.reference_pose(h.reference_index),
-                                       self.extrinsic) for h in match.hypotheses]
+                                       self.inputs.extrinsic) for h in match.hypotheses]
         self.candidates_pub.publish(candidates_message(scan.stamp, self.map_frame_id,
                                                        hypotheses))
         self.confidences_pub.publish(confidences_message(
@@ -473,48 +378,8 @@ class LocaliserNode(LocaliserLogic, Node):
         self.activate()
 
 
-class ManagedLocaliserNode(LocaliserLogic, LifecycleNode):
-    """The localiser as a managed (lifecycle) node, for nav2's lifecycle manager: parameters at
-    construction, the map on configure, topics on activate, paused on deactivate, freed on
-    cleanup. A failing configure (a missing or mismatched map) leaves it unconfigured."""
-
-    def __init__(self, node_name: str = "localiser", **kwargs) -> None:
-        LifecycleNode.__init__(self, node_name, **kwargs)
-        self.init_lidar_state()
-        self.declare_settings()
-
-    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        try:
-            self.configure(self.create_lifecycle_publisher)
-        except (ParameterFault, MapFileError, OSError, ValueError) as error:
-            self.get_logger().error(f"configure failed: {type(error).__name__}: {error}")
-            self.localiser = None
-            return TransitionCallbackReturn.FAILURE
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.activate()
-        return super().on_activate(state)
-
-    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.deactivate()
-        return super().on_deactivate(state)
-
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.cleanup()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.cleanup()
-        return TransitionCallbackReturn.SUCCESS
-
-
 def main(args: list[str] | None = None) -> int:
     return run_node(LocaliserNode, args)
-
-
-def managed_main(args: list[str] | None = None) -> int:
-    return run_node(ManagedLocaliserNode, args)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ import os
 import threading
 from pathlib import Path
 
-from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
 from sensor_msgs.msg import PointCloud2
 
@@ -30,48 +29,24 @@ from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
 from mf_lpr_ros.errors import MapFileError
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.ros.lidar_node import POSE_SOURCES, LidarNode, ParameterFault, run_node, sensor_qos
+from mf_lpr_ros.ros.params import POSE_SOURCES, ParameterFault
+from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
+from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
 IF_EXISTS = ("error", "append", "overwrite")
 # As map servers publish a map: reliable and transient local, so a map published before this
 # node started still arrives.
-GLOBAL_MAP_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
-                            reliability=QoSReliabilityPolicy.RELIABLE,
-                            durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+GLOBAL_MAP_QOS = latched_qos()
 
 
 class MapBuilderNode(LidarNode):
     def __init__(self, node_name: str = "map_builder", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         config, _ = self.declare_config()
-        positive = (lambda v: v > 0, "> 0")
-        map_path = self.typed_parameter("map_path", "mf_lpr_map.mfmap", "map file to write",
-                                        lambda v: bool(v), "a file path")
-        if_exists = self.typed_parameter(
-            "if_exists", "error", "when map_path exists: error, append (extend it) or overwrite",
-            lambda v: v in IF_EXISTS, f"one of {IF_EXISTS}")
-        self.pose_source = self.typed_parameter(
-            "pose_source", "odom", "odom (nav_msgs/Odometry on 'odom'), pose (PoseStamped on "
-            "'pose') or pose_with_covariance", lambda v: v in POSE_SOURCES,
-            f"one of {sorted(POSE_SOURCES)}")
-        extrinsic = self.declare_extrinsic()
-        max_pose_gap_s = self.typed_parameter(
-            "max_pose_gap_s", 1.0, "largest gap between pose samples interpolated across",
-            *positive)
-        self.save_period_s = self.typed_parameter("save_period_s", 10.0,
-                                                  "seconds between periodic saves", *positive)
-        keep_clouds = self.typed_parameter("keep_clouds", False,
-                                           "store reference clouds (enables ICP refinement)")
-        self.max_points = self.typed_parameter("max_points", 2_000_000,
-                                               "scans with more points are rejected", *positive)
-        self.sensor_frame_id = self.typed_parameter(
-            "sensor_frame_id", "", "accept only scans in this frame ('' = any)")
-        self.map_frame_id = self.typed_parameter(
-            "map_frame_id", "", "frame of the map ('' = the pose messages' frame)")
-        self.future_tolerance_s = self.typed_parameter(
-            "future_tolerance_s", 60.0, "reject scans stamped further ahead of the clock "
-            "(0 = no check)", lambda v: v >= 0, ">= 0")
-        reliable = self.declare_reliable_qos()
+        map_path, if_exists, keep_clouds = self._declare_output()
+        self.inputs = self.declare_inputs(
+            pose_default="odom", pose_use="the poses of the reference scans",
+            map_frame_use="frame of the map ('' = the pose messages' frame)")
         self.global_map_topic = self.typed_parameter(
             "global_map_topic", "", "a PointCloud2 global map topic (transient local) to render "
             "a reference grid from, instead of building from scans ('' = off)")
@@ -79,8 +54,27 @@ class MapBuilderNode(LidarNode):
             "sensor_height_m", 1.8, "with global_map_topic: the sensor's height above the "
             "ground", lambda v: v > 0, "> 0")
         self.freeze_parameters()
+        path, existing = self._open_output(Path(map_path), if_exists)
+        if self.global_map_topic:
+            self._start_global_map_mode(config, path)
+            return
+        self._start_scan_mode(config, path, existing, keep_clouds)
 
-        path = Path(map_path)
+    def _declare_output(self) -> tuple[str, str, bool]:
+        map_path = self.typed_parameter("map_path", "mf_lpr_map.mfmap", "map file to write",
+                                        lambda v: bool(v), "a file path")
+        if_exists = self.typed_parameter(
+            "if_exists", "error", "when map_path exists: error, append (extend it) or overwrite",
+            lambda v: v in IF_EXISTS, f"one of {IF_EXISTS}")
+        self.save_period_s = self.typed_parameter("save_period_s", 10.0,
+                                                  "seconds between periodic saves",
+                                                  lambda v: v > 0, "> 0")
+        keep_clouds = self.typed_parameter("keep_clouds", False,
+                                           "store reference clouds (enables ICP refinement)")
+        return map_path, if_exists, keep_clouds
+
+    def _open_output(self, path: Path, if_exists: str) -> tuple[Path, ReferenceMap | None]:
+        """The map to extend (if_exists append) or None; refuses an existing file by default."""
         existing = None
         if path.exists():
             if if_exists == "error":
@@ -91,24 +85,27 @@ class MapBuilderNode(LidarNode):
         if not os.access(path.parent if str(path.parent) else Path("."), os.W_OK):
             self.get_logger().error(f"the folder of map_path {path} is not writable; the map is "
                                     "kept in memory and saves will be retried")
-        if self.global_map_topic:
-            self._start_global_map_mode(config, path)
-            return
+        return path, existing
+
+    def _start_scan_mode(self, config, path: Path, existing: ReferenceMap | None,
+                         keep_clouds: bool) -> None:
+        inputs = self.inputs
         self.builder = MapBuilder(config, path, keep_clouds=keep_clouds, reference_map=existing,
-                                  sensor_frame_id=self.sensor_frame_id,
-                                  frame_id=self.map_frame_id or "map")
+                                  sensor_frame_id=inputs.sensor_frame_id,
+                                  frame_id=inputs.map_frame_id or "map")
         self._auto_reported = False
-        self.poses = PoseBuffer(max_gap_s=max_pose_gap_s)
-        self.synchroniser = ScanPoseSynchroniser(self.poses, extrinsic)
+        self.poses = PoseBuffer(max_gap_s=inputs.max_pose_gap_s)
+        self.synchroniser = ScanPoseSynchroniser(self.poses, inputs.extrinsic)
         self._next_index = int(self.builder.map.source_indices.max()) + 1 \
             if len(self.builder.map) else 0
-        self.subscribe_poses(self.pose_source, self.poses, self._pair, reliable)
-        self.create_subscription(PointCloud2, "points", self._on_scan, sensor_qos(50, reliable))
+        self.subscribe_poses(inputs.pose_source, self.poses, self._pair, inputs.reliable)
+        self.create_subscription(PointCloud2, "points", self._on_scan,
+                                 sensor_qos(50, inputs.reliable))
         self.create_timer(self.save_period_s, self._periodic_save)
+        extent = f"appending to {len(existing)} references" if existing else "new map"
         self.get_logger().info(
-            f"building {path} ({'appending to ' + str(len(existing)) + ' references' if existing else 'new map'}): "
-            f"voxel {self._voxel_text()}, spacing {config.spacing_m} m, poses from "
-            f"'{POSE_SOURCES[self.pose_source][0]}'")
+            f"building {path} ({extent}): voxel {self._voxel_text()}, spacing "
+            f"{config.spacing_m} m, poses from '{POSE_SOURCES[inputs.pose_source][0]}'")
 
     def _start_global_map_mode(self, config, path: Path) -> None:
         if config.auto:
@@ -137,7 +134,7 @@ class MapBuilderNode(LidarNode):
             self.counters["global_maps_rejected"] += 1
             self.log_problem("global_map", f"global map rejected: {error}")
             return
-        frame = message.header.frame_id or self.map_frame_id or "map"
+        frame = message.header.frame_id or self.inputs.map_frame_id or "map"
         self._global_worker = threading.Thread(target=self._render_global_map,
                                                args=(points, frame), daemon=True)
         self._global_worker.start()
@@ -151,7 +148,7 @@ class MapBuilderNode(LidarNode):
             reference_map = build_global_map(f"topic {self.global_map_topic}",
                                              self._global_config, points=points, render=render,
                                              progress=False)
-            reference_map.frame_id = self.map_frame_id or frame
+            reference_map.frame_id = self.inputs.map_frame_id or frame
             reference_map.save(self._global_path)
         except (InvalidCloudError, ValueError, OSError, MapFileError) as error:
             self.counters["global_maps_rejected"] += 1
@@ -163,8 +160,7 @@ class MapBuilderNode(LidarNode):
             f"to {self._global_path}")
 
     def _on_scan(self, message: PointCloud2) -> None:
-        decoded = self.decode_scan(message, self.max_points, self.sensor_frame_id,
-                                   self.future_tolerance_s)
+        decoded = self.decode_scan(message)
         if decoded is None:
             return
         if not self.builder.map.sensor_frame_id:
@@ -175,7 +171,7 @@ class MapBuilderNode(LidarNode):
         self._pair()
 
     def _pair(self, final: bool = False) -> None:
-        if not self.map_frame_id and self.pose_frame_id:
+        if not self.inputs.map_frame_id and self.pose_frame_id:
             self.builder.map.frame_id = self.pose_frame_id
         for scan in self.synchroniser.ready(final=final):
             try:

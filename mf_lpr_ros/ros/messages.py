@@ -12,7 +12,6 @@ Loop closures travel in the formats the localiser's loop_closure_format names:
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -25,9 +24,9 @@ from std_msgs.msg import (ColorRGBA, Float64MultiArray, Header, MultiArrayDimens
 from visualization_msgs.msg import Marker, MarkerArray
 
 from mf_lpr_ros.live.localiser import LiveMatch
-from mf_lpr_ros.core.pose import check_quaternion
 from mf_lpr_ros.io.pointcloud import xyz_to_pointcloud2_layout
 from mf_lpr_ros.core.pose import matrix_to_quaternion, pose_matrix
+from mf_lpr_ros.io.messages import seconds_to_stamp_parts, stamp_to_seconds
 
 # Variance given to the dimensions a planar match does not observe (z, roll, pitch).
 UNOBSERVED_VARIANCE = 1e3
@@ -39,27 +38,9 @@ LOOP_CLOSURE_FIELDS = (
 LOOP_CLOSURE_LABEL = "mf_lpr_loop_closure_v1:" + ",".join(LOOP_CLOSURE_FIELDS)
 
 
-def stamp_to_seconds(stamp: Time) -> float:
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-
-
 def seconds_to_stamp(seconds: float) -> Time:
-    whole = math.floor(seconds)
-    nanoseconds = int(round((seconds - whole) * 1e9))
-    if nanoseconds >= 1_000_000_000:
-        whole, nanoseconds = whole + 1, nanoseconds - 1_000_000_000
-    return Time(sec=int(whole), nanosec=nanoseconds)
-
-
-def pose_message_to_matrix(message) -> np.ndarray:
-    """world_T_child of an Odometry, PoseStamped or PoseWithCovarianceStamped; refuses NaN and
-    non-unit quaternions (InvalidPoseError)."""
-    pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
-    q = pose.orientation
-    quaternion = np.array([q.x, q.y, q.z, q.w])
-    check_quaternion(quaternion)
-    p = pose.position
-    return pose_matrix(np.array([p.x, p.y, p.z]), quaternion)
+    sec, nanosec = seconds_to_stamp_parts(seconds)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def points_to_pointcloud2(points: np.ndarray, stamp: Time, frame_id: str) -> PointCloud2:

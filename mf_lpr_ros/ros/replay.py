@@ -13,14 +13,13 @@ from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
 from mf_lpr_ros.progress import progress_bar
+from mf_lpr_ros.ros.qos import sensor_qos, wait_for_subscribers
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
 
 DEFAULT_TYPES = (CLOUD_TYPE, *POSE_TYPES, "tf2_msgs/msg/TFMessage")
-_DISCOVERY_SETTLE_S = 0.5
 
 
 @dataclass
@@ -56,8 +55,7 @@ def replay_bag(path: str | Path, *, topics: list[str] | None = None, rate: float
     own_node = node is None
     node = node or rclpy.create_node("mf_lpr_replay")
     report = ReplayReport()
-    qos = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                     reliability=QoSReliabilityPolicy.RELIABLE)
+    qos = sensor_qos(100, reliable=True)
     try:
         with open_bag(Path(path)) as reader:
             by_topic = {c.topic: c for c in reader.connections}
@@ -123,16 +121,7 @@ def replay_with_own_context(path: str | Path, ros_args: list[str], **options
 
 
 def _wait_for_subscribers(publishers: dict, count: int, timeout_s: float, node: Node) -> None:
-    if count <= 0:
-        return
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if all(p.get_subscription_count() >= count for p in publishers.values()):
-            # Discovery is not symmetric: give subscribers a moment to match these writers,
-            # or best-effort ones drop the first messages.
-            time.sleep(_DISCOVERY_SETTLE_S)
-            return
-        time.sleep(0.05)
-    waiting = {t: p.get_subscription_count() for t, p in publishers.items()}
-    node.get_logger().warning(f"replaying without every subscriber after {timeout_s} s: "
-                              f"{waiting}")
+    if count > 0 and not wait_for_subscribers(publishers.values(), count, timeout_s):
+        waiting = {t: p.get_subscription_count() for t, p in publishers.items()}
+        node.get_logger().warning(f"replaying without every subscriber after {timeout_s} s: "
+                                  f"{waiting}")
