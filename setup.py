@@ -30,7 +30,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "mf-lpr = mf_lpr_ros.cli.commands:main",
+            "mf-lpr = mf_lpr_ros.cli:main",
             "map_builder = mf_lpr_ros.ros.map_builder:main",
             "localiser = mf_lpr_ros.ros.localiser:main",
             "managed_localiser = mf_lpr_ros.ros.managed_localiser:main",

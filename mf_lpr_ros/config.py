@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
@@ -140,6 +141,19 @@ def preset_file_text(name: str) -> str:
                   for key, value in flat.items() if key.startswith(section + ".")]
     lines.append(f"    spacing_m: {_yaml_scalar(flat['spacing_m'])}")
     return "\n".join(lines) + "\n"
+
+
+def write_preset_files(folder: Path) -> list[Path]:
+    """folder/<name>.yaml (preset_file_text) for every named preset, each written atomically."""
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in sorted(PRESETS):
+        path = folder / f"{name}.yaml"
+        temporary = path.with_name(f".{path.name}.tmp")
+        temporary.write_text(preset_file_text(name))
+        os.replace(temporary, path)
+        written.append(path)
+    return written
 
 
 def _yaml_scalar(value: Any) -> str:

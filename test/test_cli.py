@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from mf_lpr_ros.cli.commands import main
+from mf_lpr_ros.cli import main
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 

@@ -1,6 +1,6 @@
 import pytest
 
-from mf_lpr_ros.config import PRESETS, Config, load_config, preset
+from mf_lpr_ros.config import PRESETS, Config, load_config, preset, preset_file_text
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.errors import ConfigError
 
@@ -49,3 +49,20 @@ def test_bad_values_name_the_parameter(tmp_path, text, name):
 @pytest.mark.parametrize("path", REPO_CONFIGS, ids=lambda p: p.name)
 def test_shipped_config_files_load(path):
     assert isinstance(load_config(path), Config)
+
+
+def test_shipped_config_files_are_the_code_presets_written_out(tmp_path):
+    """config/*.yaml are generated (mf-lpr presets --write config): the code is the source."""
+    assert sorted(path.stem for path in REPO_CONFIGS) == sorted(PRESETS)
+    for path in REPO_CONFIGS:
+        assert path.read_text() == preset_file_text(path.stem), \
+            f"{path} differs from preset {path.stem!r}: run mf-lpr presets --write config"
+        assert load_config(path) == preset(path.stem)
+
+
+def test_presets_command_writes_what_the_test_compares(tmp_path):
+    from mf_lpr_ros.cli import main
+
+    assert main(["presets", "--write", str(tmp_path)]) == 0
+    assert {p.name: p.read_text() for p in tmp_path.glob("*.yaml")} == \
+        {p.name: p.read_text() for p in REPO_CONFIGS}

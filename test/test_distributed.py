@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("distributed", reason="Dask distributed is not installed (make setup)")
 
 from mf_lpr_ros.pipeline.bulk import SourceSpec, build_maps  # noqa: E402
-from mf_lpr_ros.cli.commands import main  # noqa: E402
+from mf_lpr_ros.cli import main  # noqa: E402
 from mf_lpr_ros.config import preset  # noqa: E402
 from mf_lpr_ros.datasets import open_source  # noqa: E402
 from mf_lpr_ros.errors import UnitFailure

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.cli.commands import main
+from mf_lpr_ros.cli import main
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.datasets import open_source

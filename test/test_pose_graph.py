@@ -110,7 +110,7 @@ def test_slam_eval_reduces_drift_with_verified_closures(two_laps):
 
 
 def test_slam_eval_cli_writes_json_and_figure(two_laps, tmp_path, capsys):
-    from mf_lpr_ros.cli.commands import main
+    from mf_lpr_ros.cli import main
 
     out, figure = tmp_path / "slam.json", tmp_path / "slam.png"
     assert main(["slam-eval", "--reference", str(two_laps), "--tolerance", "5", "--preset",

@@ -79,7 +79,7 @@ def test_replay_names_missing_topics(ros_graph, ros1_bag):
 
 
 def test_replay_command_line(ros1_bag, capsys):
-    from mf_lpr_ros.cli.commands import main
+    from mf_lpr_ros.cli import main
 
     assert main(["replay", str(ros1_bag[0]), "--rate", "50", "--quiet", "--topics",
                  "/velodyne_points", "--ros-args", "-r", "__node:=replayer"]) == 0

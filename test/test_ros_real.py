@@ -126,7 +126,7 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
 
 
 def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
-    from mf_lpr_ros.cli.commands import main
+    from mf_lpr_ros.cli import main
 
     bag, _ = balm_bag
     assert main(["demo", "--data", str(bag), "--out", str(tmp_path), "--rate", "4",

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.evaluation import suite as suite_module
-from mf_lpr_ros.cli.commands import main
+from mf_lpr_ros.cli import main
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.evaluation.protocol import Protocol
 from mf_lpr_ros.evaluation.suite import SUITES, Published, Rule, Suite, run_suite
@@ -144,7 +144,7 @@ def test_cli_suite_lists_and_refuses_clearly(capsys, tmp_path):
 
 
 def test_shared_data_suite_table(data_dir, tmp_path):
-    """The acceptance table of issue 4 on ../shared/data, MF-LPR against Scan Context."""
+    """The acceptance table on ../shared/data, MF-LPR against Scan Context."""
     rows = run_suite(SUITES["shared-data"], data_dir, tmp_path, progress=False, figures=False)
     by = {(r["pair"], r["method"]): r for r in rows}
     ours, theirs = by[("mean of 3 pairs", "MF-LPR (ours)")], by[("mean of 3 pairs", "Scan Context")]

@@ -247,7 +247,7 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
            Rule("single", "default", Protocol(5.0, exclude_recent_frames=50), ("hku_mb_livox",),
                 by_preset=True))),
     Suite("shared-data",
-          "The development sets of ../shared/data (the acceptance table of issue 4): BALM "
+          "The development sets of ../shared/data (the project's acceptance table): BALM "
           "handheld, HKU main building (Livox) and KITTI 00 BEV, single-sequence loop closures",
           (Rule("single", "handheld", Protocol(3.0, exclude_recent_frames=50),
                 ("balm_realworld",)),

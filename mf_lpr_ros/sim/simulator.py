@@ -41,7 +41,6 @@ class SensorModel:
 VLP16 = SensorModel("VLP-16", tuple(np.arange(-15.0, 15.1, 2.0)))
 HDL32 = SensorModel("HDL-32E", tuple(np.linspace(-30.67, 10.67, 32)), azimuth_step_deg=0.5,
                     max_range_m=80.0)
-SENSORS = {"vlp16": VLP16, "hdl32": HDL32}
 
 
 @dataclass
