@@ -339,3 +339,30 @@ def test_ply_folder_with_kitti_poses(tmp_path):
         read_ply(folder / "000011.ply")
     with pytest.raises(DatasetError, match="4 scans"):
         open_source(tmp_path)
+
+
+def test_open_source_asks_the_registered_loaders_in_priority_order(tmp_path):
+    from mf_lpr_ros.datasets import LOADERS, Sequence, open_source, register_loader
+
+    class MarkerSequence(Sequence):
+        layout = "a folder holding MARKER"
+        priority = 5
+
+        def __init__(self, path):
+            self.name, self.stamps, self.poses = "marker", np.zeros(1), None
+
+        @classmethod
+        def recognises(cls, path):
+            return (path / "MARKER").exists()
+
+    register_loader(MarkerSequence)
+    try:
+        (tmp_path / "MARKER").touch()
+        (tmp_path / "velodyne").mkdir()        # also a KITTI layout: the higher priority wins
+        assert isinstance(open_source(tmp_path), MarkerSequence)
+        with pytest.raises(DatasetError) as refused:
+            open_source(tmp_path / "velodyne")
+        assert "a folder holding MARKER" in str(refused.value)
+        assert "a KITTI folder" in str(refused.value) and "a ROS bag" in str(refused.value)
+    finally:
+        LOADERS.remove(MarkerSequence)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Iterator
+from pathlib import Path
+from typing import ClassVar, Iterable, Iterator
 
 import numpy as np
 from mf_lpr_ros.errors import DatasetError
@@ -33,12 +34,27 @@ class Sequence:
     """Scans in time order with stamps and (optional) poses, readable in one pass.
 
     Subclasses set name, stamps (n,), poses ((n, 4, 4) or None) and implement _read(indices),
-    yielding Scans for increasing indices.
+    yielding Scans for increasing indices. A loader that open_source should find declares its
+    layout (one phrase for the error that lists them) and recognises(path), and is registered
+    with @register_loader; loaders are tried by ascending priority.
     """
 
     name: str = ""
     stamps: np.ndarray
     poses: np.ndarray | None
+    layout: ClassVar[str] = ""
+    priority: ClassVar[int] = 50
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        """Whether path (a file or folder that exists) is in this loader's layout."""
+        return False
+
+    @classmethod
+    def from_source(cls, path: Path, cloud_topic: str | None = None,
+                    pose_topic: str | None = None) -> "Sequence":
+        """The sequence at a recognised path (topics matter to bags only)."""
+        return cls(path)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -170,3 +186,15 @@ class PoseOverride(Sequence):
         for scan in self.base.iter_scans(indices):
             scan.pose = self.poses[scan.index]
             yield scan
+
+
+LOADERS: list[type[Sequence]] = []
+
+
+def register_loader(loader: type[Sequence]) -> type[Sequence]:
+    """Class decorator: make open_source try this loader."""
+    if not loader.layout:
+        raise TypeError(f"{loader.__name__} must declare its layout")
+    LOADERS.append(loader)
+    LOADERS.sort(key=lambda registered: registered.priority)
+    return loader

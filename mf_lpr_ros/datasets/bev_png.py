@@ -16,14 +16,22 @@ import numpy as np
 from PIL import Image
 
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, read_kitti_poses
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, read_kitti_poses
 
 PIXEL_SIZE_M = 0.4
 COUNT_SCALE = 25.5
 FRAME_PERIOD_S = 0.1
 
 
+@register_loader
 class BevPngSequence(Sequence):
+    layout = "a BEV PNG folder (imgs/*.png, poses.txt)"
+    priority = 70
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "imgs").is_dir()
+
     def __init__(self, root: str | Path, pixel_size_m: float = PIXEL_SIZE_M) -> None:
         self.root = Path(root)
         self.name = self.root.name

@@ -8,10 +8,18 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, read_kitti_poses, read_xyzi_bin
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, read_kitti_poses, read_xyzi_bin
 
 
+@register_loader
 class KittiSequence(Sequence):
+    layout = "a KITTI folder (velodyne/*.bin, poses.txt)"
+    priority = 20
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "velodyne").is_dir()
+
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
         self.name = self.root.name

@@ -14,14 +14,22 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import euler_pose
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, numbered_files, poses_at_stamps, read_xyzi_bin
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, numbered_files, poses_at_stamps, read_xyzi_bin
 
 # base_T_ouster from the MulRan calibration (x, y, z m; roll, pitch, yaw deg).
 BASE_T_OUSTER = (1.7042, -0.021, 1.8047, 0.0001, 0.0003, 179.6654)
 MAX_POSE_GAP_S = 1.0
 
 
+@register_loader
 class MulranSequence(Sequence):
+    layout = "a MulRan sequence (Ouster/*.bin, global_pose.csv)"
+    priority = 40
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "Ouster").is_dir()
+
     def __init__(self, root: str | Path,
                  base_t_ouster: tuple[float, ...] = BASE_T_OUSTER) -> None:
         self.root = Path(root)

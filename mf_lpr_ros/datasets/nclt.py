@@ -15,7 +15,7 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import euler_pose
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, numbered_files, poses_at_stamps
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, numbered_files, poses_at_stamps
 
 # body_T_velodyne from the NCLT development kit (x, y, z m; roll, pitch, yaw deg).
 BODY_T_VELODYNE = (0.002, -0.004, -0.957, 0.807, 0.166, -90.703)
@@ -24,7 +24,15 @@ _RECORD = np.dtype([("xyz", "<u2", 3), ("intensity", "u1"), ("laser", "u1")])
 MAX_POSE_GAP_S = 0.5
 
 
+@register_loader
 class NcltSequence(Sequence):
+    layout = "an NCLT session (velodyne_sync/*.bin, groundtruth_*.csv)"
+    priority = 30
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "velodyne_sync").is_dir()
+
     def __init__(self, root: str | Path, groundtruth: str | Path | None = None,
                  body_t_velodyne: tuple[float, ...] = BODY_T_VELODYNE) -> None:
         self.root = Path(root)

@@ -23,7 +23,7 @@ from PIL import Image
 
 from mf_lpr_ros.core.pose import euler_pose
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, numbered_files, poses_at_stamps
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, numbered_files, poses_at_stamps
 
 # x, y, z (m), roll, pitch, yaw (rad) relative to the stereo camera: the SDK's extrinsics/*.txt.
 STEREO_T_VELODYNE_LEFT = (-0.60072, -0.34077, -0.26837, -0.0053948, -0.041998, -3.1337)
@@ -43,7 +43,15 @@ _Z_UP = np.diag([1.0, -1.0, -1.0, 1.0])
 _INS_COLUMNS = ("timestamp", "northing", "easting", "down", "roll", "pitch", "yaw")
 
 
+@register_loader
 class OxfordRadarSequence(Sequence):
+    layout = "an Oxford Radar RobotCar session (velodyne_left/, gps/ins.csv)"
+    priority = 50
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "velodyne_left").is_dir()
+
     def __init__(self, root: str | Path, lidar: str = "velodyne_left",
                  stereo_t_lidar: tuple[float, ...] | None = None,
                  stereo_t_ins: tuple[float, ...] | None = None) -> None:

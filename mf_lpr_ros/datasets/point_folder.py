@@ -13,7 +13,7 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, nearest_keys, read_kitti_poses, read_tum_poses
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, nearest_keys, read_kitti_poses, read_tum_poses
 from mf_lpr_ros.io.pcd import read_pcd
 from mf_lpr_ros.io.ply import read_ply
 
@@ -29,7 +29,15 @@ def point_folder(root: Path) -> Path | None:
     return None
 
 
+@register_loader
 class PointFolderSequence(Sequence):
+    layout = "a PCD/PLY folder (*.pcd, *.ply, or in pcd/ or ply/, with poses_tum.txt or KITTI poses.txt)"
+    priority = 90
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and point_folder(path) is not None
+
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
         self.name = self.root.name

@@ -16,8 +16,9 @@ from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 from mf_lpr_ros.core.pose import interpolate_poses
 from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence
 
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
               "geometry_msgs/msg/PoseWithCovarianceStamped")
@@ -45,7 +46,23 @@ def _pick_topic(connections, types: tuple[str, ...], wanted: str | None, what: s
     raise DatasetError(f"{path}: {len(available)} {what} topics {available}; choose one")
 
 
+@register_loader
 class RosbagSequence(Sequence):
+    layout = "a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)"
+    priority = 10
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        if path.is_file():
+            return path.suffix in BAG_SUFFIXES
+        return (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) or \
+            any(path.glob("*.db3"))
+
+    @classmethod
+    def from_source(cls, path: Path, cloud_topic: str | None = None,
+                    pose_topic: str | None = None) -> "RosbagSequence":
+        return cls(path, cloud_topic, pose_topic)
+
     def __init__(self, path: str | Path, cloud_topic: str | None = None,
                  pose_topic: str | None = None, extrinsic: np.ndarray | None = None,
                  max_pose_gap_s: float = DEFAULT_MAX_POSE_GAP_S) -> None:

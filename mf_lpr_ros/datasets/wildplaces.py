@@ -17,7 +17,7 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import pose_matrix
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Scan, Sequence, nearest_keys, read_xyzi_bin
+from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, nearest_keys, read_xyzi_bin
 from mf_lpr_ros.io.pcd import read_pcd
 
 CLOUD_FOLDERS = ("Clouds_downsampled", "Clouds")
@@ -26,7 +26,15 @@ _POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 _STAMP_TOLERANCE_S = 1e-4
 
 
+@register_loader
 class WildPlacesSequence(Sequence):
+    layout = "a Wild-Places sequence (Clouds_downsampled/ or Clouds/, poses_aligned.csv)"
+    priority = 60
+
+    @classmethod
+    def recognises(cls, path: Path) -> bool:
+        return path.is_dir() and any((path / folder).is_dir() for folder in CLOUD_FOLDERS)
+
     def __init__(self, root: str | Path, cloud_folder: str | None = None) -> None:
         self.root = Path(root)
         self.name = self.root.name
