@@ -43,7 +43,9 @@ $(STAMP): setup.py package.xml scripts/setup_env.sh
 demo: setup
 	$(VENV)/bin/mf-lpr demo $(if $(DATA),--data $(DATA),)
 
+# Lint first (pyflakes errors, syntax errors, lines over the project's 100 columns), then the tests.
 test: setup torch baselines
+	$(VENV)/bin/ruff check mf_lpr_ros test benchmarks launch
 	$(VPY) -m pytest -q $(PYTEST_ARGS)
 
 bench: setup

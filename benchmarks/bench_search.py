@@ -73,7 +73,8 @@ def generated_map(n_refs: int, rng: np.random.Generator) -> ReferenceMap:
 
 def tiled_grid_global(reference_map: ReferenceMap, query: np.ndarray, angles: np.ndarray) -> float:
     """Seconds for the authors' global stage: rotated queries convolved over tiled references."""
-    low = pool(weighted(reference_map.occupancy(slice(None)), PARAMS.unoccupied_weight), PARAMS.pool)
+    low = pool(weighted(reference_map.occupancy(slice(None)), PARAMS.unoccupied_weight),
+               PARAMS.pool)
     n, tile = len(low), low.shape[1]
     per_side = int(np.ceil(np.sqrt(n)))
     grid = np.zeros((per_side * tile, per_side * tile), dtype=np.float32)

@@ -1,6 +1,6 @@
 """The descriptor's and the search's parameters, validated on construction.
 
-Every default below is the paper's value (METHOD.md section 4) unless a comment says why not.
+Every default below is the paper's value (docs/METHOD.md section 4) unless a comment says why not.
 mf_lpr_ros.config groups them with the map spacing into a Config and loads them from YAML.
 """
 
@@ -14,7 +14,7 @@ from mf_lpr_ros.errors import ConfigError
 
 @dataclass(frozen=True)
 class DescriptorParams:
-    """How a scan becomes a BEV occupancy descriptor (METHOD.md section 1).
+    """How a scan becomes a BEV occupancy descriptor (docs/METHOD.md section 1).
 
     size: cells per side of the high-resolution grid (D).
     voxel_size: cell and voxel edge in metres (v).
@@ -61,11 +61,14 @@ class DescriptorParams:
     heading_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        require_parameter(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8", self.size)
+        require_parameter(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8",
+                          self.size)
         require_parameter(self.voxel_size > 0, "voxel_size", "> 0", self.voxel_size)
-        require_parameter(self.density_mode in ("voxels", "points"), "density_mode", "'voxels' or 'points'",
+        require_parameter(self.density_mode in ("voxels", "points"), "density_mode",
+                          "'voxels' or 'points'",
                  self.density_mode)
-        require_parameter(self.density_threshold >= 0, "density_threshold", ">= 0", self.density_threshold)
+        require_parameter(self.density_threshold >= 0, "density_threshold", ">= 0",
+                          self.density_threshold)
         require_parameter(-1.0 <= self.unoccupied_weight <= 0.0, "unoccupied_weight", "in [-1, 0]",
                  self.unoccupied_weight)
         require_parameter(self.patch_size >= 1 and self.size % self.patch_size == 0, "patch_size",
@@ -80,7 +83,8 @@ class DescriptorParams:
         require_parameter(-180 <= self.heading_deg <= 180, "heading_deg", "in [-180, 180]",
                  self.heading_deg)
         if self.z_min is not None and self.z_max is not None:
-            require_parameter(self.z_min < self.z_max, "z_min", f"< z_max ({self.z_max})", self.z_min)
+            require_parameter(self.z_min < self.z_max, "z_min", f"< z_max ({self.z_max})",
+                              self.z_min)
         if self.max_range is not None:
             require_parameter(self.max_range > 0, "max_range", "> 0", self.max_range)
 
@@ -96,7 +100,7 @@ class DescriptorParams:
 
 @dataclass(frozen=True)
 class SearchParams:
-    """How a query descriptor is matched against the map (METHOD.md sections 2 and 3).
+    """How a query descriptor is matched against the map (docs/METHOD.md sections 2 and 3).
 
     rotation_step_deg: rotation sampling of the global stage (k).
     top_n: distinct references passed from the global to the local stage (n). The paper uses
@@ -177,7 +181,8 @@ class SearchParams:
     rerank_agreement_m: float = 2.0
 
     def __post_init__(self) -> None:
-        require_parameter(0 < self.rotation_step_deg <= 180 and (360 / self.rotation_step_deg).is_integer(),
+        require_parameter(0 < self.rotation_step_deg <= 180
+                          and (360 / self.rotation_step_deg).is_integer(),
                  "rotation_step_deg", "a divisor of 360", self.rotation_step_deg)
         require_parameter(self.top_n >= 1, "top_n", ">= 1", self.top_n)
         require_parameter(self.max_shift_m > 0, "max_shift_m", "> 0", self.max_shift_m)
@@ -198,8 +203,10 @@ class SearchParams:
                  "'auto', 'numpy' or 'torch'", self.backend)
         require_parameter(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",
                  self.verify_fitness)
-        require_parameter(self.distinct_radius_m > 0, "distinct_radius_m", "> 0", self.distinct_radius_m)
-        require_parameter(0.0 <= self.min_distinctiveness <= 1.0, "min_distinctiveness", "in [0, 1]",
+        require_parameter(self.distinct_radius_m > 0, "distinct_radius_m", "> 0",
+                          self.distinct_radius_m)
+        require_parameter(0.0 <= self.min_distinctiveness <= 1.0, "min_distinctiveness",
+                          "in [0, 1]",
                  self.min_distinctiveness)
         require_parameter(self.consistency_min_support >= 0, "consistency_min_support", ">= 0",
                  self.consistency_min_support)
@@ -210,7 +217,8 @@ class SearchParams:
                  self.rerank_margin)
         require_parameter(self.rerank_agreement_m > 0, "rerank_agreement_m", "> 0",
                  self.rerank_agreement_m)
-        require_parameter(self.consistency_min_separation_m >= 0, "consistency_min_separation_m", ">= 0",
+        require_parameter(self.consistency_min_separation_m >= 0, "consistency_min_separation_m",
+                          ">= 0",
                  self.consistency_min_separation_m)
 
 

@@ -32,7 +32,7 @@ quiet() {
   return "$status"
 }
 quiet $pip install -q --upgrade pip
-quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis open3d-cpu
+quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis ruff open3d-cpu
 if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg, std_srvs.srv, lifecycle_msgs.msg" 2>/dev/null; then
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
     ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs \
@@ -45,6 +45,6 @@ quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and p
 # Dask distributed: suite and build-map across processes or machines (--scheduler).
 quiet $pip install -q "dask[distributed]" || echo "setup: dask not installed; --scheduler will be unavailable"
 quiet $pip install -q --no-deps -e .
-"$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" \
+"$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" && [ -x "$venv/bin/ruff" ] \
   || { echo "setup: the environment is incomplete" >&2; exit 1; }
 echo "setup: environment ready in $venv"

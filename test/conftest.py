@@ -20,6 +20,17 @@ os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
+def pytest_collection_modifyitems(items) -> None:
+    """Mark what each test needs: ros for test/ros/ and the ROS graph fixture, real_data for
+    the real-data fixture (markers are registered in setup.cfg)."""
+    ros_folder = Path(__file__).parent / "ros"
+    for item in items:
+        if ros_folder in Path(item.fspath).parents or "ros_graph" in item.fixturenames:
+            item.add_marker(pytest.mark.ros)
+        if "data_dir" in item.fixturenames:
+            item.add_marker(pytest.mark.real_data)
+
+
 def data_root() -> Path | None:
     candidate = Path(os.environ.get("MF_LPR_DATA", REPO.parent / "shared" / "data"))
     return candidate if candidate.is_dir() else None

@@ -36,7 +36,8 @@ def test_yaml_overrides_a_preset(tmp_path):
 @pytest.mark.parametrize("text,name", [("descriptor:\n  voxel_size: -1\n", "voxel_size"),
                                        ("descriptor:\n  pool: 7\n", "pool"),
                                        ("search:\n  rotation_step_deg: 7\n", "rotation_step_deg"),
-                                       ("search:\n  score_normalisation: max\n", "score_normalisation"),
+                                       ("search:\n  score_normalisation: max\n",
+                                        "score_normalisation"),
                                        ("descriptor:\n  voxelsize: 1\n", "voxelsize"),
                                        ("[1, 2]\n", "mapping")])
 def test_bad_values_name_the_parameter(tmp_path, text, name):

@@ -41,7 +41,8 @@ def add_common(parser: argparse.ArgumentParser) -> None:
                              "(voxel size, height band, field of view; default: %(default)s)")
     parser.add_argument("--config", help="YAML file overriding the preset (see config/)")
     parser.add_argument("--cloud-topic", help="PointCloud2 topic of a bag (default: the only one)")
-    parser.add_argument("--pose-topic", help="Odometry/PoseStamped topic of a bag (default: the only one)")
+    parser.add_argument("--pose-topic",
+                        help="Odometry/PoseStamped topic of a bag (default: the only one)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

@@ -36,7 +36,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def register(commands: argparse._SubParsersAction) -> None:
     global_demo = commands.add_parser(
         "global-demo", help="relocalising off the mapping path in the simulator: a keyframe "
-        "map against a grid rendered from the global map (mf_lpr_ros/global_demo.py)")
+        "map against a grid rendered from the global map (mf_lpr_ros/sim/global_demo.py)")
     global_demo.add_argument("--source", default="drive", choices=["drive", "world"],
                              help="the global cloud: the mapping drive's scans accumulated "
                                   "(default), or the whole world's surfaces")

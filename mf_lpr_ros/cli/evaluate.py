@@ -96,7 +96,8 @@ def cmd_slam_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_suite(args: argparse.Namespace) -> int:
-    from mf_lpr_ros.evaluation.suite import SUITES, format_table, run_suite
+    from mf_lpr_ros.evaluation.benchmarks import SUITES
+    from mf_lpr_ros.evaluation.suite import format_table, run_suite
 
     if args.list or not args.name:
         for name, suite in SUITES.items():

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mf_lpr_ros.cli.common import (SOURCE_HELP, add_common, config_from_arguments)
+from mf_lpr_ros.cli.common import SOURCE_HELP, add_common, config_from_arguments
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import open_source
 
@@ -74,7 +74,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     localise.add_argument("--min-confidence", type=float, help="accept threshold for the CSV")
     localise.add_argument("--max-shift-m", type=float, help="largest searched translation")
     localise.add_argument("--icp", action="store_true",
-                          help="refine each pose by ICP (open3d) against the map's reference clouds")
+                          help="refine each pose by ICP (open3d) against the map's reference "
+                               "clouds")
     add_common(localise)
     localise.set_defaults(handler=cmd_localise)
     replay = commands.add_parser(

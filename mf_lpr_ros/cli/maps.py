@@ -59,7 +59,8 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
 
 
 def _build_global_map(args: argparse.Namespace, config: Config) -> int:
-    from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map, read_trajectory
+    from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
+    from mf_lpr_ros.pipeline.global_cloud import read_trajectory
 
     trajectory = read_trajectory(args.trajectory) if args.trajectory else None
     render = RenderParams(spacing_m=args.spacing_m or RenderParams.spacing_m,
@@ -77,7 +78,7 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
 
 
 def cmd_accumulate(args: argparse.Namespace) -> int:
-    from mf_lpr_ros.pipeline.global_map import accumulate, write_pcd
+    from mf_lpr_ros.pipeline.global_cloud import accumulate, write_pcd
 
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
     cloud = accumulate(sequence, args.voxel, progress=not args.quiet)

@@ -1,4 +1,4 @@
-"""BEV occupancy descriptors (METHOD.md section 1).
+"""BEV occupancy descriptors (docs/METHOD.md section 1).
 
 Axis convention, used everywhere in the package: rows index y, columns index x, both
 increasing with the coordinate; the point (x, y) falls in cell

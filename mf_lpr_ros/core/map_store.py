@@ -157,14 +157,16 @@ class ReferenceMap:
         self._flush_pending()
         if self.cloud_offsets is None or self.cloud_points is None:
             raise MapFileError("this map keeps no reference clouds (build it with clouds kept)")
-        return np.asarray(self.cloud_points[self.cloud_offsets[index]: self.cloud_offsets[index + 1]])
+        start, stop = self.cloud_offsets[index], self.cloud_offsets[index + 1]
+        return np.asarray(self.cloud_points[start:stop])
 
     def check_params(self, params: DescriptorParams) -> None:
         """Refuse descriptor parameters that differ from the ones the map was built with."""
         ours, theirs = asdict(self.params), asdict(params)
         differing = {k: (ours[k], theirs[k]) for k in ours if ours[k] != theirs[k]}
         if differing:
-            detail = ", ".join(f"{k}: map has {a!r}, requested {b!r}" for k, (a, b) in differing.items())
+            detail = ", ".join(f"{k}: map has {a!r}, requested {b!r}"
+                               for k, (a, b) in differing.items())
             raise MapParameterMismatch(
                 f"descriptor parameters differ from the map's ({detail}); rebuild the map or use "
                 "the map's parameters")
@@ -198,40 +200,23 @@ class ReferenceMap:
         for _ in range(4):
             offset = _aligned(_PREAMBLE.size + len(header_bytes))
             for name, array in arrays.items():
-                table[name] = {"offset": offset, "dtype": array.dtype.str, "shape": list(array.shape),
+                table[name] = {"offset": offset, "dtype": array.dtype.str,
+                               "shape": list(array.shape),
                                "crc32": _crc32(array)}
                 offset = _aligned(offset + array.nbytes)
             encoded = json.dumps(header, sort_keys=True).encode()
             if encoded == header_bytes:
                 break
             header_bytes = encoded
-        preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes), zlib.crc32(header_bytes))
+        preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes),
+                                  zlib.crc32(header_bytes))
         _write_atomically(path, preamble + header_bytes, arrays, table)
 
     @classmethod
     def load(cls, path: str | Path, *, verify: bool = True) -> "ReferenceMap":
         """Load and validate a map; raises MapFileError naming the problem."""
         path = Path(path)
-        try:
-            size = path.stat().st_size
-            with open(path, "rb") as handle:
-                preamble = handle.read(_PREAMBLE.size)
-                if len(preamble) < _PREAMBLE.size:
-                    raise MapFileError(f"{path}: truncated map file ({size} bytes, no header)")
-                magic, version, header_len, header_crc = _PREAMBLE.unpack(preamble)
-                if magic != MAGIC:
-                    raise MapFileError(f"{path}: not an mf_lpr_ros map (bad magic {magic!r})")
-                if version > FORMAT_VERSION:
-                    raise MapFileError(
-                        f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
-                        f"this build reads version {FORMAT_VERSION}")
-                if version != FORMAT_VERSION:
-                    raise MapFileError(f"{path}: unsupported map format version {version}")
-                header_bytes = handle.read(header_len)
-        except OSError as error:
-            raise MapFileError(f"cannot read map file {path}: {error}") from error
-        if len(header_bytes) < header_len:
-            raise MapFileError(f"{path}: truncated map file (header cut at {size} bytes)")
+        header_bytes, header_crc, size = _read_header(path)
         if zlib.crc32(header_bytes) != header_crc:
             raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
         try:
@@ -243,27 +228,15 @@ class ReferenceMap:
                             int(entry["crc32"])) for name, entry in header["arrays"].items()}
         except (KeyError, TypeError, ValueError) as error:
             raise MapFileError(f"{path}: invalid map header: {error}") from error
-        reference_map = cls(params, frame_id=header.get("frame_id", "map"),
-                            sensor_frame_id=header.get("sensor_frame_id", ""),
-                            metadata=header.get("metadata", {}))
-        loaded: dict[str, np.ndarray] = {}
-        for name, (offset, dtype, shape, crc) in table.items():
-            n_bytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-            if offset + n_bytes > size:
-                raise MapFileError(f"{path}: truncated map file (array {name!r} needs bytes up to "
-                                   f"{offset + n_bytes}, file has {size})")
-            if n_bytes == 0:
-                array = np.zeros(shape, dtype=dtype)
-            else:
-                array = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
-            if verify and _crc32(array) != crc:
-                raise MapFileError(f"{path}: corrupt map file (checksum mismatch in {name!r})")
-            loaded[name] = array
+        loaded = _map_arrays(path, table, size, verify)
         expected_bits = params.size * params.size // 8
         for name, shape in (("occupancy_bits", (n_refs, expected_bits)), ("poses", (n_refs, 4, 4)),
                             ("stamps", (n_refs,)), ("source_indices", (n_refs,))):
             if name not in loaded or loaded[name].shape != shape:
                 raise MapFileError(f"{path}: array {name!r} missing or of the wrong shape")
+        reference_map = cls(params, frame_id=header.get("frame_id", "map"),
+                            sensor_frame_id=header.get("sensor_frame_id", ""),
+                            metadata=header.get("metadata", {}))
         reference_map._occupancy_bits = loaded["occupancy_bits"]
         reference_map._poses = loaded["poses"]
         reference_map._stamps = loaded["stamps"]
@@ -272,6 +245,49 @@ class ReferenceMap:
             reference_map.cloud_points = loaded["cloud_points"]
             reference_map.cloud_offsets = loaded["cloud_offsets"]
         return reference_map
+
+
+def _read_header(path: Path) -> tuple[bytes, int, int]:
+    """The header bytes, their stored CRC and the file size, after the preamble's checks."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as handle:
+            preamble = handle.read(_PREAMBLE.size)
+            if len(preamble) < _PREAMBLE.size:
+                raise MapFileError(f"{path}: truncated map file ({size} bytes, no header)")
+            magic, version, header_len, header_crc = _PREAMBLE.unpack(preamble)
+            if magic != MAGIC:
+                raise MapFileError(f"{path}: not an mf_lpr_ros map (bad magic {magic!r})")
+            if version > FORMAT_VERSION:
+                raise MapFileError(
+                    f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
+                    f"this build reads version {FORMAT_VERSION}")
+            if version != FORMAT_VERSION:
+                raise MapFileError(f"{path}: unsupported map format version {version}")
+            header_bytes = handle.read(header_len)
+    except OSError as error:
+        raise MapFileError(f"cannot read map file {path}: {error}") from error
+    if len(header_bytes) < header_len:
+        raise MapFileError(f"{path}: truncated map file (header cut at {size} bytes)")
+    return header_bytes, header_crc, size
+
+
+def _map_arrays(path: Path, table: dict, size: int, verify: bool) -> dict[str, np.ndarray]:
+    """Every array of the header's table, memory-mapped and (verify) checksummed."""
+    loaded: dict[str, np.ndarray] = {}
+    for name, (offset, dtype, shape, crc) in table.items():
+        n_bytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        if offset + n_bytes > size:
+            raise MapFileError(f"{path}: truncated map file (array {name!r} needs bytes up to "
+                               f"{offset + n_bytes}, file has {size})")
+        if n_bytes == 0:
+            array = np.zeros(shape, dtype=dtype)
+        else:
+            array = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+        if verify and _crc32(array) != crc:
+            raise MapFileError(f"{path}: corrupt map file (checksum mismatch in {name!r})")
+        loaded[name] = array
+    return loaded
 
 
 def _aligned(offset: int) -> int:

@@ -57,7 +57,8 @@ class SpectralBank(NumpyArrays):
         """Add references, (n, H, W) float32."""
         images = np.asarray(images, dtype=np.float32)
         if images.ndim != 3 or images.shape[1:] != (self.height, self.width):
-            raise ValueError(f"expected (n, {self.height}, {self.width}) images, got {images.shape}")
+            raise ValueError(f"expected (n, {self.height}, {self.width}) images, "
+                             f"got {images.shape}")
         start, stop = self._count, self._count + len(images)
         self._reserve(stop)
         spectra = sp_fft.rfft(images, n=self.fft_length, axis=2)

@@ -38,7 +38,8 @@ class SpacingGate:
 
 def select_references(positions: np.ndarray, spacing_m: float,
                       valid: np.ndarray | None = None) -> np.ndarray:
-    """Indices of scans kept as references: the first, then each one >= spacing_m from the last kept."""
+    """Indices of scans kept as references: the first, then each one at least spacing_m from the
+    last one kept."""
     valid = np.ones(len(positions), dtype=bool) if valid is None else valid
     gate = SpacingGate(spacing_m)
     kept = []

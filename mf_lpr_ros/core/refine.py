@@ -1,4 +1,4 @@
-"""Optional ICP refinement (open3d) of a matched-filter alignment against a stored reference cloud."""
+"""ICP refinement (open3d) of a matched-filter alignment against a stored reference cloud."""
 
 from __future__ import annotations
 

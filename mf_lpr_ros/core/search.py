@@ -1,4 +1,4 @@
-"""Two-stage matched-filter search and pose estimation (METHOD.md sections 2 and 3)."""
+"""Two-stage matched-filter search and pose estimation (docs/METHOD.md sections 2 and 3)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from mf_lpr_ros.core.descriptor import (footprint, pooled_weights, prepare_rotat
                                         rotate_occupancy, turns_with_sensor, weighted)
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.backends import make_backend
+from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
 
 # Scale from normalised peak curvature to variance: a peak whose score halves one cell away
@@ -23,13 +24,6 @@ _CURVATURE_TO_VARIANCE = 0.1
 _MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
 _REPORTED_CANDIDATES = 5
 _EXPANDED_LEADERS = 16
-
-# Least-squares fit of f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2 on the 3x3 grid
-# (x along columns, y along rows, both -1..1).
-_grid_y, _grid_x = np.mgrid[-1:2, -1:2]
-_QUADRATIC_FIT = np.linalg.pinv(np.stack([
-    np.ones(9), _grid_x.ravel(), _grid_y.ravel(), _grid_x.ravel() ** 2,
-    _grid_x.ravel() * _grid_y.ravel(), _grid_y.ravel() ** 2], axis=1))
 
 
 @dataclass
@@ -332,10 +326,10 @@ class MatchedFilterIndex:
     def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
         voxel = self.params.voxel_size
         surface = peak.surface
-        offset, cell_hessian = _subcell_peak(surface[peak.angle_index], peak.row, peak.col)
+        offset, cell_hessian = subcell_peak(surface[peak.angle_index], peak.row, peak.col)
         peak_value = max(float(surface[peak.angle_index, peak.row, peak.col]), 1e-9)
         per_angle = surface.reshape(len(peak.angles), -1).max(axis=1)
-        angle_offset, angle_curvature = _subsample_peak(per_angle, peak.angle_index)
+        angle_offset, angle_curvature = subsample_peak(per_angle, peak.angle_index)
         step = self.search.local_rotation_step_deg
         rotation_deg = peak.angles[peak.angle_index] + angle_offset * step
         shift_cells = np.array([peak.col - self.high_shift + offset[0],
@@ -383,33 +377,3 @@ class _LocalPeak:
     col: int
 
 
-def _subcell_peak(surface: np.ndarray, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-cell offset (dx, dy) of a peak from a quadratic fit on its 3x3 neighbourhood.
-
-    Returns the offset (cells, clipped to +-0.5) and the fitted Hessian (x, y). At the window
-    border the offset along that axis is 0 and the curvature comes from what is available.
-    """
-    rows, cols = surface.shape
-    if 0 < row < rows - 1 and 0 < col < cols - 1:
-        patch = surface[row - 1: row + 2, col - 1: col + 2].astype(np.float64).ravel()
-        _, gx, gy, cxx, cxy, cyy = _QUADRATIC_FIT @ patch
-        hessian = np.array([[2 * cxx, cxy], [cxy, 2 * cyy]])
-        if np.all(np.linalg.eigvalsh(-hessian) > 1e-12):
-            offset = -np.linalg.solve(hessian, [gx, gy])
-            if np.all(np.abs(offset) <= 1.0):
-                return np.clip(offset, -0.5, 0.5), hessian
-    dx, hxx = _subsample_peak(surface[row], col)
-    dy, hyy = _subsample_peak(surface[:, col], row)
-    return np.array([dx, dy]), np.array([[hxx, 0.0], [0.0, hyy]])
-
-
-def _subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:
-    """Parabola through a 1-D peak and its neighbours: (offset in samples, second difference)."""
-    if index <= 0 or index >= len(values) - 1:
-        return 0.0, 0.0
-    left, centre, right = (float(values[index - 1]), float(values[index]),
-                           float(values[index + 1]))
-    curvature = left - 2 * centre + right
-    if curvature >= 0:
-        return 0.0, curvature
-    return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)), curvature

@@ -1,5 +1,5 @@
 """Verification of matches before they are published: the tests that keep false loop closures
-out of a pose graph (METHOD.md, our additions). One code path for the live nodes, `localise`
+out of a pose graph (docs/METHOD.md, our additions). One code path for the live nodes, `localise`
 and `evaluate`.
 
 A match is published when, in this order (cheap tests first, each only on what passed before):

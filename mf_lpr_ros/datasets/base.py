@@ -112,7 +112,8 @@ def read_tum_poses(path) -> tuple[np.ndarray, np.ndarray]:
     except (OSError, ValueError) as error:
         raise DatasetError(f"cannot read TUM poses {path}: {error}") from error
     if values.shape[1] != 8:
-        raise DatasetError(f"{path}: expected 8 columns (key x y z qx qy qz qw), got {values.shape[1]}")
+        raise DatasetError(f"{path}: expected 8 columns (key x y z qx qy qz qw), "
+                           f"got {values.shape[1]}")
     if not np.isfinite(values).all():
         raise DatasetError(f"{path}: non-finite pose values")
     try:
@@ -139,8 +140,8 @@ def nearest_keys(sorted_keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarra
     """For each value, the index of the nearest of sorted_keys and the absolute gap to it."""
     position = np.searchsorted(sorted_keys, values).clip(0, len(sorted_keys) - 1)
     before = (position - 1).clip(0)
-    nearest = np.where(np.abs(sorted_keys[before] - values) < np.abs(sorted_keys[position] - values),
-                       before, position)
+    closer_before = np.abs(sorted_keys[before] - values) < np.abs(sorted_keys[position] - values)
+    nearest = np.where(closer_before, before, position)
     return nearest, np.abs(sorted_keys[nearest] - values)
 
 

@@ -13,7 +13,8 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, nearest_keys, read_kitti_poses, read_tum_poses
+from mf_lpr_ros.datasets.base import (Scan, Sequence, nearest_keys, read_kitti_poses,
+                                      read_tum_poses, register_loader)
 from mf_lpr_ros.io.pcd import read_pcd
 from mf_lpr_ros.io.ply import read_ply
 
@@ -31,7 +32,8 @@ def point_folder(root: Path) -> Path | None:
 
 @register_loader
 class PointFolderSequence(Sequence):
-    layout = "a PCD/PLY folder (*.pcd, *.ply, or in pcd/ or ply/, with poses_tum.txt or KITTI poses.txt)"
+    layout = ("a PCD/PLY folder (*.pcd, *.ply, or in pcd/ or ply/, with poses_tum.txt or KITTI "
+              "poses.txt)")
     priority = 90
 
     @classmethod

@@ -97,7 +97,8 @@ def read_pose_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 class _PlainDataUnpickler(pickle.Unpickler):
     """Loads dicts, lists, numbers, strings and numpy arrays; refuses any other class."""
 
-    _ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+    _ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray",
+                                                            "_reconstruct"),
                 ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
                 ("numpy", "ndarray"), ("numpy", "dtype")}
 

@@ -115,8 +115,8 @@ def bev_overlay(path: Path, pair, result: PairResult) -> None:
         c, s = np.cos(pose[2]), np.sin(pose[2])
         world = local @ np.array([[c, s], [-s, c]]) + pose[:2]
         ax.plot(world[:, 0], world[:, 1], "s", color=colour, ms=1.5, alpha=0.5, label=label)
-    ax.set(title=f"{pair.name}: query {chosen['query_index']} on reference "
-                 f"{chosen['reference_index']} (RTE {chosen['rte_m']:.2f} m)",
+    ax.set(title=f"{pair.name}: query {chosen.query_index} on reference "
+                 f"{chosen.reference_index} (RTE {chosen.rte_m:.2f} m)",
            aspect="equal", xlabel="x (m)", ylabel="y (m)")
     ax.legend(fontsize=7, markerscale=4)
     fig.tight_layout()

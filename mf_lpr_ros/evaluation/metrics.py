@@ -1,4 +1,4 @@
-"""The metrics (METHOD.md section 5), computed the same way for every method from its per-query
+"""The metrics (docs/METHOD.md section 5), computed the same way for every method from its per-query
 records."""
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ class QueryRecord:
 
 
 def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int) -> dict:
-    """Metrics of METHOD.md section 5 from per-query records.
+    """Metrics of docs/METHOD.md section 5 from per-query records.
 
     recall_at_1: the retrieved reference lies within tolerance (retrieval recall).
     recall_at_1_corrected: the estimated pose lies within tolerance (the paper's recall).

@@ -1,4 +1,4 @@
-"""The evaluation protocol (METHOD.md section 5): which scans are references and queries, and
+"""The evaluation protocol (docs/METHOD.md section 5): which scans are references and queries, and
 running a method (evaluation.methods) over them into per-query records (evaluation.metrics).
 
 A protocol picks references (one per reference_spacing_m along the reference path, 0 keeps every
@@ -76,12 +76,14 @@ def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
     loop-closure protocol on reference)."""
     same_sequence = query is None
     query_seq = reference if same_sequence else query
-    ref_valid = reference.valid_poses("evaluation") & _in_frames(len(reference), protocol.reference_frames)
-    spacing = protocol.reference_spacing_m if protocol.reference_spacing_m is not None else spacing_m
+    ref_valid = reference.valid_poses("evaluation") & _in_frames(len(reference),
+                                                                 protocol.reference_frames)
+    spacing = spacing_m if protocol.reference_spacing_m is None else protocol.reference_spacing_m
     references = select_references(reference.poses[:, :3, 3], spacing, ref_valid)
     if not len(references):
         raise ValueError(f"{reference.name}: no scan with a valid pose to use as a reference")
-    query_valid = query_seq.valid_poses("evaluation") & _in_frames(len(query_seq), protocol.query_frames)
+    query_valid = query_seq.valid_poses("evaluation") & _in_frames(len(query_seq),
+                                                                   protocol.query_frames)
     if query_stamps is not None:
         query_valid &= _stamps_in(query_seq.stamps, np.asarray(query_stamps, dtype=np.float64))
     if protocol.query_spacing_m > 0:

@@ -28,9 +28,30 @@ def read_ply(path: str | Path) -> np.ndarray:
     if end < 0:
         raise DatasetError(f"{path}: PLY header has no end_header")
     body = raw.index(b"\n", end) + 1
+    encoding, elements = _parse_header(path, raw[:end])
+    before, n_vertices, properties = _vertex_element(path, elements)
+    if encoding == "ascii":
+        return _ascii_vertices(path, raw[body:], sum(count for _, count, _ in before),
+                               n_vertices, properties)
+    endian = _ENDIAN[encoding]
+    offset = body + sum(count * np.dtype([(n, endian + t) for n, t in props]).itemsize
+                        for _, count, props in before)
+    dtype = np.dtype([(name, endian + kind) for name, kind in properties])
+    if len(raw) - offset < n_vertices * dtype.itemsize:
+        raise DatasetError(f"{path}: truncated PLY ({len(raw) - offset} vertex bytes, "
+                           f"{n_vertices * dtype.itemsize} expected)")
+    records = np.frombuffer(raw, dtype=dtype, count=n_vertices, offset=offset)
+    return np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float32)
+
+
+_Element = tuple[str, int, list[tuple[str, str]]]
+
+
+def _parse_header(path: Path, header: bytes) -> tuple[str, list[_Element]]:
+    """The encoding and the elements (name, count, [(property, type)]) of a PLY header."""
     encoding = None
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in raw[:end].decode("ascii", errors="replace").splitlines()[1:]:
+    elements: list[_Element] = []
+    for line in header.decode("ascii", errors="replace").splitlines()[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
@@ -48,7 +69,13 @@ def read_ply(path: str | Path) -> np.ndarray:
             raise DatasetError(f"{path}: malformed PLY header line {line!r}") from error
     if encoding not in ("ascii", *_ENDIAN):
         raise DatasetError(f"{path}: PLY format {encoding!r} is not supported")
-    names = [e[0] for e in elements]
+    return encoding, elements
+
+
+def _vertex_element(path: Path, elements: list[_Element]
+                    ) -> tuple[list[_Element], int, list[tuple[str, str]]]:
+    """The elements before the vertices, the vertex count and the vertex properties."""
+    names = [element[0] for element in elements]
     if "vertex" not in names:
         raise DatasetError(f"{path}: PLY has no vertex element")
     before = elements[:names.index("vertex")]
@@ -59,23 +86,17 @@ def read_ply(path: str | Path) -> np.ndarray:
                            "supported")
     if not {"x", "y", "z"} <= {name for name, _ in properties}:
         raise DatasetError(f"{path}: PLY vertices have no x, y, z (properties: {properties})")
-    if encoding == "ascii":
-        lines = raw[body:].decode("ascii", errors="replace").splitlines()
-        skip = sum(count for _, count, _ in before)
-        try:
-            table = np.loadtxt(lines[skip:skip + n_vertices], ndmin=2)
-        except ValueError as error:
-            raise DatasetError(f"{path}: malformed ASCII PLY vertices ({error})") from error
-        if len(table) != n_vertices:
-            raise DatasetError(f"{path}: {len(table)} ASCII vertices for {n_vertices} declared")
-        columns = [name for name, _ in properties]
-        return table[:, [columns.index(c) for c in ("x", "y", "z")]].astype(np.float32)
-    endian = _ENDIAN[encoding]
-    offset = body + sum(count * np.dtype([(n, endian + t) for n, t in props]).itemsize
-                        for _, count, props in before)
-    dtype = np.dtype([(name, endian + kind) for name, kind in properties])
-    if len(raw) - offset < n_vertices * dtype.itemsize:
-        raise DatasetError(f"{path}: truncated PLY ({len(raw) - offset} vertex bytes, "
-                           f"{n_vertices * dtype.itemsize} expected)")
-    records = np.frombuffer(raw, dtype=dtype, count=n_vertices, offset=offset)
-    return np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float32)
+    return before, n_vertices, properties
+
+
+def _ascii_vertices(path: Path, body: bytes, skip: int, n_vertices: int,
+                    properties: list[tuple[str, str]]) -> np.ndarray:
+    lines = body.decode("ascii", errors="replace").splitlines()
+    try:
+        table = np.loadtxt(lines[skip:skip + n_vertices], ndmin=2)
+    except ValueError as error:
+        raise DatasetError(f"{path}: malformed ASCII PLY vertices ({error})") from error
+    if len(table) != n_vertices:
+        raise DatasetError(f"{path}: {len(table)} ASCII vertices for {n_vertices} declared")
+    columns = [name for name, _ in properties]
+    return table[:, [columns.index(c) for c in ("x", "y", "z")]].astype(np.float32)

@@ -34,11 +34,28 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
     Honours fields, offsets, point_step, row_step, is_bigendian, float32/float64 coordinates and
     organised clouds; other fields are ignored. Raises InvalidCloudError naming the problem.
     """
-    fields = {f.name: f for f in cloud.fields}
-    missing = [axis for axis in "xyz" if axis not in fields]
-    if missing:
-        raise InvalidCloudError(f"PointCloud2 has no {', '.join(missing)} field "
-                                f"(fields: {sorted(fields)})")
+    height, width, point_step, row_step = _checked_shape(cloud, max_points)
+    dtype = _coordinate_dtype(cloud, point_step)
+    if height > 1 and row_step < width * point_step:
+        raise InvalidCloudError(f"PointCloud2 row_step {row_step} is smaller than width * "
+                                f"point_step = {width * point_step}")
+    row_stride = row_step if height > 1 else width * point_step
+    data = np.frombuffer(_buffer(cloud.data), dtype=np.uint8)
+    needed = (height - 1) * row_stride + width * point_step
+    if len(data) < needed:
+        raise InvalidCloudError(f"PointCloud2 data holds {len(data)} bytes; its layout "
+                                f"(height {height}, width {width}, point_step {point_step}, "
+                                f"row_step {row_step}) needs {needed}")
+    records = np.ndarray(shape=(height, width), dtype=dtype, buffer=data,
+                         strides=(row_stride, point_step))
+    xyz = np.empty((height * width, 3), dtype=np.float32)
+    for column, axis in enumerate("xyz"):
+        xyz[:, column] = records[axis].ravel()
+    return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+def _checked_shape(cloud: Any, max_points: int | None) -> tuple[int, int, int, int]:
+    """(height, width, point_step, row_step), refusing empty, oversized or negative layouts."""
     height, width = int(cloud.height), int(cloud.width)
     point_step, row_step = int(cloud.point_step), int(cloud.row_step)
     if height < 0 or width < 0 or row_step < 0:
@@ -52,6 +69,17 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
                                 f"{max_points}")
     if point_step <= 0:
         raise InvalidCloudError(f"PointCloud2 point_step must be > 0, got {point_step}")
+    return height, width, point_step, row_step
+
+
+def _coordinate_dtype(cloud: Any, point_step: int) -> np.dtype:
+    """The structured dtype of one point's x, y, z, refusing missing, non-float, misplaced or
+    overlapping fields."""
+    fields = {f.name: f for f in cloud.fields}
+    missing = [axis for axis in "xyz" if axis not in fields]
+    if missing:
+        raise InvalidCloudError(f"PointCloud2 has no {', '.join(missing)} field "
+                                f"(fields: {sorted(fields)})")
     byte_order = ">" if cloud.is_bigendian else "<"
     names, formats, offsets = [], [], []
     for axis in "xyz":
@@ -72,24 +100,8 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
         if start < end:
             raise InvalidCloudError(f"PointCloud2 fields {first!r} and {second!r} overlap "
                                     f"(offsets {dict(zip(names, offsets))})")
-    if height > 1 and row_step < width * point_step:
-        raise InvalidCloudError(f"PointCloud2 row_step {row_step} is smaller than width * "
-                                f"point_step = {width * point_step}")
-    row_stride = row_step if height > 1 else width * point_step
-    data = np.frombuffer(_buffer(cloud.data), dtype=np.uint8)
-    needed = (height - 1) * row_stride + width * point_step
-    if len(data) < needed:
-        raise InvalidCloudError(f"PointCloud2 data holds {len(data)} bytes; its layout "
-                                f"(height {height}, width {width}, point_step {point_step}, "
-                                f"row_step {row_step}) needs {needed}")
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                      "itemsize": point_step})
-    records = np.ndarray(shape=(height, width), dtype=dtype, buffer=data,
-                         strides=(row_stride, point_step))
-    xyz = np.empty((n_points, 3), dtype=np.float32)
-    for column, axis in enumerate("xyz"):
-        xyz[:, column] = records[axis].ravel()
-    return xyz[np.isfinite(xyz).all(axis=1)]
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": point_step})
 
 
 def _buffer(data: Any) -> Any:

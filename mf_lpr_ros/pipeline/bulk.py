@@ -1,10 +1,10 @@
 """Maps from many sources at once, serially or on a Dask cluster (pipeline.distributed).
 
-Each source's references are chosen as pipeline.mapping.build_map chooses them; describing them is cut
-into chunks of scans, one work unit each (a unit opens its source itself, so a worker on another
-machine needs only the same paths). The chunks are put back in order, so every map equals the
-serial build_map's of the same source; combined, the sources' references follow one another in
-the order given.
+Each source's references are chosen as pipeline.mapping.build_map chooses them; describing
+them is cut into chunks of scans, one work unit each (a unit opens its source itself, so a
+worker on another machine needs only the same paths). The chunks are put back in order, so
+every map equals the serial build_map's of the same source; combined, the sources' references
+follow one another in the order given.
 """
 
 from __future__ import annotations

@@ -19,8 +19,6 @@ tiles it overlaps and a map of a few km^2 builds on a workstation.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,14 +27,11 @@ from scipy import ndimage
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.params import DescriptorParams
-from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import Sequence, read_kitti_poses, read_tum_poses
-from mf_lpr_ros.io.pcd import read_pcd
-from mf_lpr_ros.io.ply import read_ply
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.core.descriptor import describe_points, one_point_per_voxel
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.progress import progress_bar
+from mf_lpr_ros.pipeline.global_cloud import TiledCloud, read_global_cloud
 
 GLOBAL_MAP_KIND = "global_map_grid"
 
@@ -91,133 +86,6 @@ class RenderParams:
 
 
 DEFAULT_SENSOR_HEIGHT_M = 1.8
-
-
-def read_global_cloud(path: str | Path) -> np.ndarray:
-    """The finite points (N, 3) float32 of a PCD or PLY global map; a clear error when the file
-    is unreadable, of another format, or holds no finite point."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".pcd":
-        points = read_pcd(path)
-    elif suffix == ".ply":
-        points = read_ply(path)
-    else:
-        raise DatasetError(f"{path}: a global map must be a .pcd or .ply file")
-    points = points[np.isfinite(points).all(axis=1)]
-    if not len(points):
-        raise InvalidCloudError(f"{path}: the global map holds no finite point")
-    return points
-
-
-def read_trajectory(path: str | Path) -> np.ndarray:
-    """(n, 4, 4) poses from a KITTI poses file (12 numbers a line) or a TUM file (8 columns)."""
-    try:
-        columns = np.loadtxt(path, ndmin=2, comments="#", max_rows=1).shape[1]
-    except (OSError, ValueError) as error:
-        raise DatasetError(f"cannot read trajectory {path}: {error}") from error
-    if columns == 12:
-        return read_kitti_poses(path)
-    if columns == 8:
-        return read_tum_poses(path)[1]
-    raise DatasetError(f"{path}: a trajectory needs 12 numbers a line (KITTI) or 8 columns "
-                       f"(TUM: key x y z qx qy qz qw), got {columns}")
-
-
-def write_pcd(path: str | Path, points: np.ndarray) -> None:
-    """points (N, 3) as a binary PCD, written atomically (temporary file, fsync, rename)."""
-    path = Path(path)
-    points = np.ascontiguousarray(points[:, :3], dtype="<f4")
-    header = ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
-              "SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-              f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-              f"POINTS {len(points)}\nDATA binary\n").encode("ascii")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(header)
-            stream.write(points.tobytes())
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
-def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = True,
-               flush_every: int = 50) -> np.ndarray:
-    """A global map (N, 3) float32 from a posed sequence: every scan in the world frame, one
-    point per voxel_m voxel (deduplicated every flush_every scans, so memory follows the map's
-    size, not the number of scans)."""
-    if not voxel_m > 0:
-        raise ValueError(f"voxel_m must be > 0, got {voxel_m!r}")
-    if sequence.poses is None:
-        raise ValueError(f"{sequence.name}: accumulating a map needs the scans' poses")
-    merged = np.zeros((0, 3), dtype=np.float32)
-    batch: list[np.ndarray] = []
-    valid = np.flatnonzero(np.isfinite(sequence.poses).all(axis=(1, 2)))
-    for scan in progress_bar(sequence.iter_scans(valid), total=len(valid), desc="accumulate",
-                             enabled=progress, unit="scan"):
-        if scan.points is None:
-            raise InvalidCloudError(f"{sequence.name}: accumulating needs point clouds, not "
-                                    "density images")
-        points = np.asarray(scan.points)[:, :3]
-        points = points[np.isfinite(points).all(axis=1)]
-        batch.append((points @ scan.pose[:3, :3].T + scan.pose[:3, 3]).astype(np.float32))
-        if len(batch) >= flush_every:
-            merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
-            batch = []
-    merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
-    if not len(merged):
-        raise InvalidCloudError(f"{sequence.name}: no finite point to accumulate")
-    return merged
-
-
-class TiledCloud:
-    """A cloud sorted by square tiles into a memory-mapped file: window() reads only the tiles
-    a window overlaps. The file lives in folder (a temporary one by default) until close()."""
-
-    def __init__(self, points: np.ndarray, tile_m: float, folder: str | Path | None = None
-                 ) -> None:
-        self.tile_m = tile_m
-        self.origin = points[:, :2].min(axis=0)
-        tiles = np.floor((points[:, :2] - self.origin) / tile_m).astype(np.int64)
-        self.shape = tuple(int(v) for v in tiles.max(axis=0) + 1)
-        keys = tiles[:, 0] * self.shape[1] + tiles[:, 1]
-        order = np.argsort(keys, kind="stable")
-        self._folder = tempfile.TemporaryDirectory(dir=folder, prefix="mf_lpr_tiles_")
-        self._path = Path(self._folder.name) / "points.f32"
-        stored = np.memmap(self._path, dtype=np.float32, mode="w+", shape=(len(points), 3))
-        stored[:] = points[order]
-        stored.flush()
-        del stored
-        self.points = np.memmap(self._path, dtype=np.float32, mode="r", shape=(len(points), 3))
-        counts = np.bincount(keys, minlength=self.shape[0] * self.shape[1])
-        self._starts = np.concatenate([[0], np.cumsum(counts)])
-
-    def window(self, x: float, y: float, half: float) -> np.ndarray:
-        """Points with |px - x| < half and |py - y| < half (a copy)."""
-        low = np.floor((np.array([x, y]) - half - self.origin) / self.tile_m).astype(int)
-        high = np.floor((np.array([x, y]) + half - self.origin) / self.tile_m).astype(int)
-        low = np.maximum(low, 0)
-        high = np.minimum(high, np.array(self.shape) - 1)
-        parts = []
-        for tx in range(low[0], high[0] + 1):
-            first = tx * self.shape[1]
-            start, stop = self._starts[first + low[1]], self._starts[first + high[1] + 1]
-            if stop > start:
-                parts.append(np.asarray(self.points[start:stop]))
-        if not parts:
-            return np.zeros((0, 3), dtype=np.float32)
-        points = np.concatenate(parts)
-        inside = (np.abs(points[:, 0] - x) < half) & (np.abs(points[:, 1] - y) < half)
-        return points[inside]
-
-    def close(self) -> None:
-        del self.points
-        self._folder.cleanup()
 
 
 @dataclass

@@ -70,6 +70,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         verdict = verifier.verify(match, planar(scan.pose) if posed else None, geometric)
         if icp and np.isnan(verdict.fitness) and geometric is not None:
             geometric(match)
-        truth = planar(scan.pose) if scan.pose is not None and np.isfinite(scan.pose).all() else None
+        posed = scan.pose is not None and np.isfinite(scan.pose).all()
+        truth = planar(scan.pose) if posed else None
         outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, verdict, truth))
     return outcomes

@@ -144,7 +144,8 @@ def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int
         false_unseen += bool(unseen[index])
     return WorldResult(name, preset, len(reference_xy), len(truth), int(seen.sum()),
                        int(unseen.sum()), len(estimates), correct, false_unseen,
-                       int((seen & searched).sum()), int((unseen & searched).sum()), np.array(translation), np.array(yaw), latency, dropped, map_path,
+                       int((seen & searched).sum()), int((unseen & searched).sum()),
+                       np.array(translation), np.array(yaw), latency, dropped, map_path,
                        estimates, truth, reference_xy)
 
 

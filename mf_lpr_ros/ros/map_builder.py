@@ -9,8 +9,8 @@ every spacing_m metres; saves the map atomically every save_period_s and at shut
 
 With global_map_topic set (e.g. `map`, as map servers and LIO stacks publish their cloud:
 reliable, transient local), it instead waits for one global point-cloud map on that topic and
-writes a grid of references rendered from it (mf_lpr_ros/global_map.py), in a worker thread so
-the node stays responsive; a later map on the topic rebuilds it.
+writes a grid of references rendered from it (pipeline.global_map), in a worker thread so the
+node stays responsive; a later map on the topic rebuilds it.
 """
 
 from __future__ import annotations

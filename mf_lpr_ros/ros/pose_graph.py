@@ -4,7 +4,7 @@
 
 Subscribes to odometry (`odom`, nav_msgs/Odometry) and loop closures (`loop_closure`, the
 localiser's mf_lpr format); keeps a keyframe every keyframe_spacing_m, adds each closure to a
-GTSAM pose graph (mf_lpr_ros/pose_graph.py: a false closure is gated out), optimises, and
+GTSAM pose graph (mf_lpr_ros/core/pose_graph.py: a false closure is gated out), optimises, and
 publishes the optimised keyframe path on `path` (nav_msgs/Path, the odometry's frame).
 """
 

@@ -1,6 +1,6 @@
 """Relocalising off the mapping path: a keyframe map against a global-map grid, in the simulator.
 
-The simulator's town (mf_lpr_ros/simulator.py) is mapped twice from one drive around its
+The simulator's town (mf_lpr_ros/sim/simulator.py) is mapped twice from one drive around its
 perimeter: as keyframes (a ray-cast scan every 2 m) and as a grid of references rendered from a
 global cloud, the drive seeding the area. The global cloud is either the drive's scans
 accumulated (what a SLAM run writes; source "drive") or the town's surfaces sampled whole
@@ -23,7 +23,9 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar_error, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.core.search import MatchedFilterIndex
-from mf_lpr_ros.sim.simulator import cast, drive, scene_cloud, urban_traversals
+from mf_lpr_ros.sim.lidar import cast
+from mf_lpr_ros.sim.simulator import drive, urban_traversals
+from mf_lpr_ros.sim.scenes import scene_cloud
 
 LANE_OFFSETS_M = (5.0, -6.0, 7.5, -9.0)
 QUERY_STEP_M = 9.0
@@ -101,7 +103,8 @@ def format_table(rows: list[DemoRow], facts: dict) -> str:
     total = sum(r.count for r in rows)
     lines.append(f"| all | {total} | {sum(r.keyframe_ok for r in rows) / total:.0%} | "
                  f"{sum(r.global_ok for r in rows) / total:.0%} |")
-    lines.append(f"\nglobal cloud: {facts['source']}; within 0.5 m and 2 deg; keyframe map {facts['keyframes']} references, "
+    lines.append(f"\nglobal cloud: {facts['source']}; within 0.5 m and 2 deg; keyframe map "
+                 f"{facts['keyframes']} references, "
                  f"grid {facts['grid_references']} references over {facts['grid_area_km2']:.4f}"
                  f" km^2, rendered in {facts['build_s']:.0f} s")
     return "\n".join(lines)

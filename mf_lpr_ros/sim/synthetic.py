@@ -29,7 +29,8 @@ def make_world(seed: int, half_extent_m: float = 60.0, n_objects: int = 220) -> 
         if rng.random() < 0.5:
             radius, height, n = rng.uniform(0.1, 0.5), rng.uniform(2.0, 8.0), 150
             angle = rng.uniform(0, 2 * np.pi, n)
-            parts.append(np.c_[centre[0] + radius * np.cos(angle), centre[1] + radius * np.sin(angle),
+            parts.append(np.c_[centre[0] + radius * np.cos(angle),
+                               centre[1] + radius * np.sin(angle),
                                rng.uniform(-1.7, height, n)])
         else:
             size = rng.uniform(1.5, 8.0, 2)

@@ -19,7 +19,8 @@ FIELD = st.builds(SimpleNamespace,
 
 @st.composite
 def valid_cloud(draw):
-    """A well-formed cloud: shuffled field order, padding, either byte order, f4 or f8, NaN holes."""
+    """A well-formed cloud: shuffled field order, padding, either byte order, f4 or f8, NaN
+    holes."""
     coordinate = draw(st.sampled_from(["f4", "f8"]))
     size = np.dtype(coordinate).itemsize
     order = draw(st.permutations(["x", "y", "z", "intensity"]))

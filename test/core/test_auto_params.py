@@ -73,7 +73,8 @@ def test_field_of_view_and_tilt_are_measured(world):
 
 
 def _quaternion(roll, pitch):
-    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     return np.array([sr * cp, cr * sp, -sr * sp, cr * cp])
 
 

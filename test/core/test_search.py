@@ -76,7 +76,8 @@ def test_unseen_place_gets_low_confidence(world, synthetic_map):
 
     elsewhere = make_world(seed=99)
     points, _ = scan_world(elsewhere, 0, 0, 0, np.random.default_rng(3))
-    unseen = MatchedFilterIndex(synthetic_map, SearchParams()).query(describe_points(points, PARAMS))
+    unseen = MatchedFilterIndex(synthetic_map, SearchParams()).query(describe_points(points,
+                                                                                     PARAMS))
     points, _ = scan_world(world, 0.5, 0.5, 0.2, np.random.default_rng(3))
     seen = MatchedFilterIndex(synthetic_map, SearchParams()).query(describe_points(points, PARAMS))
     assert unseen.confidence < 0.5 * seen.confidence

@@ -18,7 +18,8 @@ from mf_lpr_ros.datasets import open_source  # noqa: E402
 from mf_lpr_ros.errors import UnitFailure
 from mf_lpr_ros.pipeline.distributed import dask_client, run_units  # noqa: E402
 from mf_lpr_ros.pipeline.mapping import build_map  # noqa: E402
-from mf_lpr_ros.evaluation.suite import SUITES, run_suite  # noqa: E402
+from mf_lpr_ros.evaluation.benchmarks import SUITES
+from mf_lpr_ros.evaluation.suite import run_suite  # noqa: E402
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence  # noqa: E402
 
 
@@ -44,6 +45,7 @@ def _pairs(out):
             for path in sorted((out / "pairs").glob("*.json"))}
 
 
+@pytest.mark.slow
 def test_suite_on_a_cluster_equals_the_serial_run_even_when_a_worker_dies(cluster, data_dir,
                                                                           tmp_path):
     suite = SUITES["shared-data"]

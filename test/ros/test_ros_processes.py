@@ -24,7 +24,7 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.sim.synthetic import route, scan_world
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 

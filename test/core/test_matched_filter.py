@@ -33,7 +33,8 @@ def test_bank_equals_direct_correlation(rng, size, max_shift):
         for a in range(3):
             direct = correlate_direct(queries[a], references[r], max_shift)
             np.testing.assert_allclose(volume[:, a, :, r].T, direct, atol=1e-3)
-            np.testing.assert_allclose(correlate_fft2(queries[a:a + 1], references[r], max_shift)[0],
+            np.testing.assert_allclose(correlate_fft2(queries[a:a + 1], references[r],
+                                                      max_shift)[0],
                                        direct, atol=1e-3)
 
 

@@ -39,7 +39,8 @@ POINTS = np.array([[1.0, 2.0, 3.0], [-4.5, 0.25, 7.0], [np.nan, 1.0, 1.0], [8.0,
 
 
 @pytest.mark.parametrize("kwargs", [{}, {"dtype": "<f8"}, {"bigendian": True},
-                                    {"point_step": 22, "extra": False}, {"height": 2, "row_pad": 6}])
+                                    {"point_step": 22, "extra": False}, {"height": 2,
+                                                                         "row_pad": 6}])
 def test_layouts_decode_to_the_same_points(kwargs):
     xyz = pointcloud2_to_xyz(cloud(POINTS, **kwargs))
     np.testing.assert_allclose(xyz, POINTS[[0, 1, 3]], rtol=1e-6)

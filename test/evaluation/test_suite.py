@@ -11,7 +11,8 @@ from mf_lpr_ros.evaluation import suite as suite_module
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.evaluation.protocol import Protocol
-from mf_lpr_ros.evaluation.suite import SUITES, Published, Rule, Suite, run_suite
+from mf_lpr_ros.evaluation.benchmarks import SUITES
+from mf_lpr_ros.evaluation.suite import Published, Rule, Suite, run_suite
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
@@ -143,6 +144,7 @@ def test_cli_suite_lists_and_refuses_clearly(capsys, tmp_path):
     assert "needs --root" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_shared_data_suite_table(data_dir, tmp_path):
     """The acceptance table on ../shared/data, MF-LPR against Scan Context."""
     rows = run_suite(SUITES["shared-data"], data_dir, tmp_path, progress=False, figures=False)

@@ -42,7 +42,8 @@ def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthe
     ros_graph.wait_for_subscribers(publisher)
     reference_map = ReferenceMap.load(path)
     for index, (points, truth) in enumerate(queries):
-        publisher.publish(points_to_pointcloud2(points, seconds_to_stamp(500.0 + index), "velodyne"))
+        publisher.publish(points_to_pointcloud2(points, seconds_to_stamp(500.0 + index),
+                                                "velodyne"))
         assert ros_graph.wait_for(lambda: len(poses) == index + 1 and len(closures) == index + 1)
         message = poses[-1]
         assert message.header.frame_id == "map"
@@ -56,7 +57,8 @@ def test_relocalise_mode_publishes_accurate_poses_and_closures(ros_graph, synthe
         closure = decode_loop_closure(closures[-1])
         assert closure["query_stamp"] == message.header.stamp
         reference = closure["reference_index"]
-        assert closure["reference_stamp"] == seconds_to_stamp(float(reference_map.stamps[reference]))
+        expected = seconds_to_stamp(float(reference_map.stamps[reference]))
+        assert closure["reference_stamp"] == expected
         composed = reference_map.poses[reference] @ closure["reference_T_query"]
         assert errors(planar(composed), planar_of_message(message))[0] < 1e-3
         assert 0.45 <= closure["confidence"] <= 1.0
@@ -122,7 +124,8 @@ def test_hostile_clouds_are_rejected_and_the_localiser_keeps_answering(ros_graph
              _cloud(np.vstack([points, far]), next(stamp))]              # 1M points
     for index, message in enumerate(valid):
         publisher.publish(message)
-        assert ros_graph.wait_for(lambda: len(poses) == index + 1), f"valid cloud {index} unanswered"
+        assert ros_graph.wait_for(lambda: len(poses) == index + 1), \
+            f"valid cloud {index} unanswered"
         translation, yaw = errors(planar_of_message(poses[-1]), planar(truth))
         assert translation < 0.5 and yaw < 2.0
     assert node.counters["scans_rejected"] == len(bad)
@@ -176,7 +179,8 @@ def test_loop_closure_mode_grows_its_map_from_posed_scans(ros_graph, world):
 
 def scan_pose(xy_yaw: np.ndarray) -> np.ndarray:
     x, y, yaw = xy_yaw
-    return pose_matrix(np.array([x, y, 0.0]), np.array([0, 0, math.sin(yaw / 2), math.cos(yaw / 2)]))
+    return pose_matrix(np.array([x, y, 0.0]), np.array([0, 0, math.sin(yaw / 2),
+                                                        math.cos(yaw / 2)]))
 
 
 @pytest.mark.parametrize("overrides,name", [

@@ -37,6 +37,7 @@ def balm_bag(data_dir):
     return path, RosbagSequence(path)
 
 
+@pytest.mark.slow
 def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag, tmp_path):
     bag, sequence = balm_bag
     map_path = tmp_path / "balm.mfmap"
@@ -70,7 +71,8 @@ def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag,
         query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
         translation, yaw = errors(planar_of_message(by_stamp[round(stamp_to_seconds(
             closure["query_stamp"]), 3)]), truth[query])
-        assert translation < 0.5 and yaw < 2.0, f"closure of scan {query} is {translation:.2f} m off"
+        assert translation < 0.5 and yaw < 2.0, \
+            f"closure of scan {query} is {translation:.2f} m off"
         closed.add(query)
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
                          EXCLUDE_RECENT_S, radius_m=3.0)
@@ -125,6 +127,7 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
     assert len(poses) >= 0.5 * len(covered), f"{len(poses)} of {len(covered)} relocalised"
 
 
+@pytest.mark.slow
 def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
     from mf_lpr_ros.cli import main
 
@@ -139,6 +142,7 @@ def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
     assert total >= 3 and correct == total
 
 
+@pytest.mark.slow
 def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
     """The localiser's closures on the real bag at its defaults: none false, and the example
     back end keeps them all and stays on the bag's poses."""

@@ -1,0 +1,134 @@
+"""The named benchmark suites: dataset pairs under a root, their protocols and presets, and
+the figures published for them (evaluation.suite runs them)."""
+
+from __future__ import annotations
+
+from mf_lpr_ros.evaluation.protocol import Protocol
+from mf_lpr_ros.evaluation.suite import Published, Rule, Suite
+
+
+# BEVPlace's KITTI protocol (its own BEV images): database and query frame ranges per sequence,
+# every database frame a reference, a query counts when a database frame lies within 5 m.
+_BEVPLACE_FRAMES = {"00": ((0, 2999), (3200, 4540)), "02": ((0, 3399), (3600, 4660)),
+                    "05": ((0, 999), (1200, 2750)), "06": ((0, 599), (800, 1100))}
+
+
+# BEVPlace's reported recall@1 (%), normal and rotated copies.
+_BEVPLACE_RECALL = {"00": (99.7, 99.6), "02": (98.1, 93.5), "05": (99.3, 98.9),
+                    "06": (100.0, 100.0)}
+
+
+def _bevplace(folder: str, sequences: tuple[str, ...]) -> tuple[tuple[Rule, ...], tuple]:
+    """Rules (each sequence and its _rot copy under folder) and BEVPlace's published recall."""
+    rules, published = [], []
+    for sequence in sequences:
+        database, queries = _BEVPLACE_FRAMES[sequence]
+        protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=database,
+                            query_frames=queries)
+        for suffix, recall in zip(("", "_rot"), _BEVPLACE_RECALL[sequence]):
+            pattern = f"{folder}/{sequence}{suffix}"
+            rules.append(Rule("single", "kitti", protocol, (pattern,)))
+            published.append(Published(pattern.replace("/", "_"), "BEVPlace (published)",
+                                       recall / 100.0))
+    return tuple(rules), tuple(published)
+
+
+_BEVPLACE_TUNING = _bevplace("kitti_bev", ("00",))
+
+
+_BEVPLACE_HOLDOUT = _bevplace("holdout/kitti_bev", ("02", "05", "06"))
+
+
+_BEVPLACE_TEXT = ("BEVPlace's KITTI protocol on its BEV images: database frames 00: 0-2999, "
+                  "02: 0-3399, 05: 0-999, 06: 0-599 (every frame a reference), queries 00: "
+                  "3200-4540, 02: 3600-4660, 05: 1200-2750, 06: 800-1100, 5 m (2-D); each "
+                  "sequence and its _rot copy (every frame turned by its own random yaw, poses "
+                  "unrotated: only retrieval recall@1 is meaningful there), with BEVPlace's "
+                  "published recall@1 beside")
+
+
+_PAPER_NCLT = Protocol(25.0, reference_spacing_m=4.0, query_spacing_m=10.0)
+
+
+_PAPER_OXFORD = Protocol(25.0, reference_spacing_m=4.0, query_spacing_m=10.0)
+
+
+_WILDPLACES_INTER = Protocol(3.0, reference_spacing_m=2.0)
+
+
+_WILDPLACES_INTRA = Protocol(3.0, reference_spacing_m=2.0, exclude_recent_s=600.0)
+
+
+SUITES: dict[str, Suite] = {suite.name: suite for suite in (
+    Suite("nclt-paper",
+          "NCLT, the paper's pairs: references 2013-02-23 and 2013-04-05 against every 2012 "
+          "session under --root (the paper used nine); refs >= 4 m apart, a query per 10 m, "
+          "25 m tolerance",
+          (Rule("cross", "nclt", _PAPER_NCLT, ("2013-02-23", "2013-04-05"), ("2012-*",)),)),
+    Suite("nclt-ring",
+          "NCLT as RING, RING++ and DeepRING evaluate it, as we read those papers (check before "
+          "citing): database 2012-02-04, queries 2012-03-17; refs every 2 m, a query per 10 m, "
+          "5 m tolerance",
+          (Rule("cross", "nclt", Protocol(5.0, reference_spacing_m=2.0, query_spacing_m=10.0),
+                ("2012-02-04",), ("2012-03-17",)),)),
+    Suite("oxford-paper",
+          "Oxford Radar RobotCar, the paper's pairs: references 2019-01-11-12-26-55 and "
+          "2019-01-10-11-46-21 against the 2019-01-14 to 2019-01-18 sessions (left Velodyne); "
+          "refs >= 4 m apart, a query per 10 m, 25 m tolerance",
+          (Rule("cross", "oxford", _PAPER_OXFORD,
+                ("2019-01-11-12-26-55", "2019-01-10-11-46-21"),
+                ("2019-01-14-*", "2019-01-15-*", "2019-01-16-*", "2019-01-17-*",
+                 "2019-01-18-*")),)),
+    Suite("wildplaces-paper",
+          "Wild-Places inter-sequence (the paper's Wild-Places table): every ordered pair of the "
+          "four sequences in each forest, queries from the release's evaluation split "
+          "(<Forest>_evaluation_query.pickle under --root), refs every 2 m, 3 m tolerance",
+          (Rule("ordered", "wildplaces", _WILDPLACES_INTER, ("Venman/V-0[1-4]",),
+                query_split="{group}_evaluation_query.pickle"),
+           Rule("ordered", "wildplaces", _WILDPLACES_INTER, ("Karawatha/K-0[1-4]",),
+                query_split="{group}_evaluation_query.pickle"))),
+    Suite("wildplaces-intra",
+          "Wild-Places intra-sequence: loop closures within V-03, V-04, K-03 and K-04, "
+          "references at least 600 s older, refs every 2 m, 3 m tolerance",
+          (Rule("single", "wildplaces", _WILDPLACES_INTRA,
+                ("Venman/V-03", "Venman/V-04", "Karawatha/K-03", "Karawatha/K-04")),)),
+    Suite("kitti-bevplace",
+          _BEVPLACE_TEXT + "; 00 (tuning) and the held-out 02, 05, 06 (--root ../shared/data)",
+          _BEVPLACE_TUNING[0] + _BEVPLACE_HOLDOUT[0], _BEVPLACE_TUNING[1] + _BEVPLACE_HOLDOUT[1]),
+    Suite("kitti-bevplace-00", _BEVPLACE_TEXT + "; 00 and 00_rot only (the tuning sequence)",
+          *_BEVPLACE_TUNING),
+    Suite("real-holdout",
+          "The real held-out sets of ../shared/data/holdout (measure once, never tune): the Livox "
+          "Mid-360 campus loop's own loop closures (references >= 40 s older, 5 m) and the Livox "
+          "Avia site's session2 against a session1 map (3 m), each with preset auto and with the "
+          "named preset chosen for the sensor beforehand (default for the Mid-360, handheld for "
+          "the handheld Avia)",
+          (Rule("single", "auto", Protocol(5.0, exclude_recent_s=40.0),
+                ("holdout/campus_mid360_loop",), by_preset=True),
+           Rule("single", "default", Protocol(5.0, exclude_recent_s=40.0),
+                ("holdout/campus_mid360_loop",), by_preset=True),
+           Rule("cross", "auto", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
+                ("holdout/hku_avia_2sessions/session2",), by_preset=True),
+           Rule("cross", "handheld", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
+                ("holdout/hku_avia_2sessions/session2",), by_preset=True))),
+    Suite("real-tuning",
+          "The real tuning sets with preset auto beside the named preset: BALM handheld "
+          "(3 m, 50 frames apart) and the HKU Avia keyframes (5 m, 50 frames apart)",
+          (Rule("single", "auto", Protocol(3.0, exclude_recent_frames=50), ("balm_realworld",),
+                by_preset=True),
+           Rule("single", "handheld", Protocol(3.0, exclude_recent_frames=50),
+                ("balm_realworld",), by_preset=True),
+           Rule("single", "auto", Protocol(5.0, exclude_recent_frames=50), ("hku_mb_livox",),
+                by_preset=True),
+           Rule("single", "default", Protocol(5.0, exclude_recent_frames=50), ("hku_mb_livox",),
+                by_preset=True))),
+    Suite("shared-data",
+          "The development sets of ../shared/data (the project's acceptance table): BALM "
+          "handheld, HKU main building (Livox) and KITTI 00 BEV, single-sequence loop closures",
+          (Rule("single", "handheld", Protocol(3.0, exclude_recent_frames=50),
+                ("balm_realworld",)),
+           Rule("single", "default", Protocol(5.0, exclude_recent_frames=50),
+                ("hku_mb_livox",)),
+           Rule("single", "kitti", Protocol(5.0, exclude_recent_frames=100, query_every=20),
+                ("kitti_bev/00",)))),
+)}

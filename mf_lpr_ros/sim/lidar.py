@@ -1,0 +1,128 @@
+"""A spinning multi-beam LiDAR ray-cast against a scene (sim.scenes)."""
+
+from __future__ import annotations
+import math
+from dataclasses import dataclass
+import numpy as np
+from mf_lpr_ros.sim.scenes import Scene
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """A spinning LiDAR: beam elevations, azimuth step, range noise, dropout, max range."""
+
+    name: str
+    elevations_deg: tuple[float, ...]
+    azimuth_step_deg: float = 0.4
+    range_noise_m: float = 0.02
+    dropout: float = 0.05
+    max_range_m: float = 100.0
+    mount_height_m: float = 1.8
+
+    def directions(self) -> np.ndarray:
+        """(R, 3) unit ray directions in the sensor frame."""
+        azimuth = np.radians(np.arange(0.0, 360.0, self.azimuth_step_deg))
+        elevation = np.radians(np.asarray(self.elevations_deg))
+        az, el = np.meshgrid(azimuth, elevation)
+        return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)],
+                        -1).reshape(-1, 3)
+
+
+VLP16 = SensorModel("VLP-16", tuple(np.arange(-15.0, 15.1, 2.0)))
+
+
+HDL32 = SensorModel("HDL-32E", tuple(np.linspace(-30.67, 10.67, 32)), azimuth_step_deg=0.5,
+                    max_range_m=80.0)
+
+
+def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Generator
+         ) -> np.ndarray:
+    """One sweep from a levelled world_T_sensor pose: (N, 3) float32 hits in the sensor frame.
+
+    Each primitive is only tested against the azimuth columns its bounding circle covers, so a
+    sweep costs about (primitives x columns they span x beams), not (primitives x rays).
+    """
+    directions = sensor.directions().reshape(len(sensor.elevations_deg), -1, 3) @ pose[:3, :3].T
+    n_columns = directions.shape[1]
+    origin = pose[:3, 3]
+    yaw = math.atan2(pose[1, 0], pose[0, 0])
+    local = scene.near(origin[0], origin[1], sensor.max_range_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = np.where(directions[..., 2] < 0, -origin[2] / directions[..., 2], np.inf)
+    distance = distance.ravel()
+    for array, bound, hits in (
+            (local.cylinders, local.cylinders[:, 2], _cylinder_hits),
+            (local.boxes, np.hypot(local.boxes[:, 2], local.boxes[:, 3]), _box_hits),
+            (local.spheres, local.spheres[:, 3], _sphere_hits)):
+        if not len(array):
+            continue
+        primitive, column = _covered_columns(array[:, :2] - origin[:2], bound, yaw,
+                                             sensor.azimuth_step_deg, n_columns)
+        rays = directions[:, column].transpose(1, 0, 2)                 # (M, E, 3)
+        t = hits(array[primitive], origin, rays)                        # (M, E)
+        ray_index = np.arange(directions.shape[0])[None, :] * n_columns + column[:, None]
+        np.minimum.at(distance, ray_index.ravel(), t.ravel())
+    hit = (distance <= sensor.max_range_m) & (rng.random(len(distance)) >= sensor.dropout)
+    ranges = distance[hit] + rng.normal(0, sensor.range_noise_m, int(hit.sum()))
+    points_world = origin + directions.reshape(-1, 3)[hit] * ranges[:, None]
+    return ((points_world - origin) @ pose[:3, :3]).astype(np.float32)
+
+
+def _covered_columns(offset: np.ndarray, bound: np.ndarray, yaw: float, step_deg: float,
+                     n_columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """(primitive, column) pairs: the azimuth columns within each bounding circle's span."""
+    distance = np.hypot(offset[:, 0], offset[:, 1])
+    centre = np.degrees(np.arctan2(offset[:, 1], offset[:, 0]) - yaw) / step_deg
+    inside = distance <= bound
+    half = np.where(inside, n_columns / 2,
+                    np.degrees(np.arcsin(np.clip(bound / np.maximum(distance, 1e-9), 0, 1)))
+                    / step_deg + 1)
+    first = np.floor(centre - half).astype(np.int64)
+    width = np.minimum(np.ceil(2 * half).astype(np.int64) + 1, n_columns)
+    primitive = np.repeat(np.arange(len(offset)), width)
+    start = np.repeat(np.cumsum(width) - width, width)
+    column = (np.repeat(first, width) + np.arange(len(primitive)) - start) % n_columns
+    return primitive, column
+
+
+def _cylinder_hits(cylinders: np.ndarray, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
+    offset = (origin[:2] - cylinders[:, :2])[:, None, :]                # (M, 1, 2)
+    a = (d[..., :2] ** 2).sum(-1)
+    b = 2 * (d[..., :2] * offset).sum(-1)
+    c = (offset ** 2).sum(-1) - cylinders[:, 2:3] ** 2
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-b - np.sqrt(disc)) / (2 * a)
+    z = origin[2] + t * d[..., 2]
+    valid = (disc >= 0) & (t > 0) & (z >= 0) & (z <= cylinders[:, 3:4])
+    return np.where(valid, t, np.inf)
+
+
+def _box_hits(boxes: np.ndarray, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
+    c, s = np.cos(boxes[:, 4:5]), np.sin(boxes[:, 4:5])                 # (M, 1)
+    rel = origin[:2] - boxes[:, :2]
+    ox = c[:, 0] * rel[:, 0] + s[:, 0] * rel[:, 1]
+    oy = -s[:, 0] * rel[:, 0] + c[:, 0] * rel[:, 1]
+    dx = d[..., 0] * c + d[..., 1] * s                                  # (M, E)
+    dy = -d[..., 0] * s + d[..., 1] * c
+    near, far = np.full(dx.shape, -np.inf), np.full(dx.shape, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for o, direction, low, high in ((ox, dx, -boxes[:, 2], boxes[:, 2]),
+                                        (oy, dy, -boxes[:, 3], boxes[:, 3]),
+                                        (np.full(len(boxes), origin[2]), d[..., 2],
+                                         np.zeros(len(boxes)), boxes[:, 5])):
+            t1 = (low[:, None] - o[:, None]) / direction
+            t2 = (high[:, None] - o[:, None]) / direction
+            near = np.maximum(near, np.nan_to_num(np.minimum(t1, t2), nan=-np.inf))
+            far = np.minimum(far, np.nan_to_num(np.maximum(t1, t2), nan=np.inf))
+    return np.where((near <= far) & (near > 0), near, np.inf)
+
+
+def _sphere_hits(spheres: np.ndarray, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
+    offset = (origin - spheres[:, :3])[:, None, :]
+    b = (d * offset).sum(-1)
+    c = (offset ** 2).sum(-1) - spheres[:, 3:4] ** 2
+    disc = b * b - c
+    with np.errstate(invalid="ignore"):
+        t = -b - np.sqrt(disc)
+    return np.where((disc >= 0) & (t > 0), t, np.inf)

@@ -1,0 +1,130 @@
+"""The map builder node under faults: a full disk, an unwritable path, bad poses."""
+
+from __future__ import annotations
+
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.ros.map_builder import MapBuilderNode
+from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
+from mf_lpr_ros.sim.synthetic import scan_world
+
+BIN = os.path.dirname(sys.executable)
+
+
+def _limit_file_size(limit: int):
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG errors instead of a signal
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def _posed_scan_publishers(ros_graph):
+    """Publishers of scans and odometry, each matched by a subscriber."""
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    odometry = ros_graph.publisher(Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    return clouds, odometry
+
+
+def test_full_disk_is_reported_and_the_map_stays_in_memory(ros_graph, world, tmp_path):
+    map_path = tmp_path / "full.mfmap"
+    process = subprocess.Popen(
+        [os.path.join(BIN, "map_builder"), "--ros-args", "-p", "preset:=kitti",
+         "-p", f"map_path:={map_path}", "-p", "save_period_s:=0.3", "-p", "keep_clouds:=true"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, "RCUTILS_LOGGING_BUFFERED_STREAM": "0"},
+        preexec_fn=_limit_file_size(3_000_000))
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(0)
+    for index in range(40):
+        points, pose = scan_world(world, 3.0 * index - 60, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+        time.sleep(0.08)
+    time.sleep(1.0)
+    process.send_signal(signal.SIGINT)
+    output = process.communicate(timeout=30)[0]
+    assert process.returncode == 0, output
+    assert "could not save the map" in output and "stay in memory" in output
+    saved = [int(n) for n in re.findall(r"saved (\d+) references", output)]
+    done = int(re.search(r"map_builder done: \d+ scans, (\d+) references", output).group(1))
+    assert saved and done == 40 and saved[-1] < done          # kept in memory beyond the disk
+    assert len(ReferenceMap.load(map_path)) == saved[-1]      # the last good save is intact
+
+
+def test_bad_poses_are_refused_and_building_goes_on(ros_graph, world, tmp_path):
+    builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(tmp_path / "m.mfmap"))
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(1)
+    bad = []
+    nan_pose = np.eye(4)
+    nan_pose[0, 3] = np.nan
+    bad.append(odometry_message(seconds_to_stamp(5.0), "map", "velodyne", nan_pose))
+    stretched = odometry_message(seconds_to_stamp(5.5), "map", "velodyne", np.eye(4))
+    stretched.pose.pose.orientation.w = 1.5                   # not a unit quaternion
+    bad.append(stretched)
+    for message in bad:
+        odometry.publish(message)
+    assert ros_graph.wait_for(lambda: builder.counters["poses_rejected"] == 2)
+    for index in range(6):
+        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(12.5), "map", "velodyne", np.eye(4)))
+    jump = np.eye(4)
+    jump[0, 3] = 900.0
+    odometry.publish(odometry_message(seconds_to_stamp(15.5), "map", "velodyne", jump))
+    assert ros_graph.wait_for(lambda: builder.counters["poses_rejected"] == 3
+                              and builder.poses.jumps == 1 and len(builder.builder.map) == 6)
+
+
+def test_an_unwritable_map_path_is_reported_and_the_map_kept(ros_graph, world):
+    builder = ros_graph.start(MapBuilderNode, preset="kitti",
+                              map_path="/proc/mf_lpr_read_only/map.mfmap")
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(3)
+    for index in range(3):
+        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    assert ros_graph.wait_for(lambda: len(builder.builder.map) == 3)
+    assert not builder.save()
+    assert builder.counters["save_failures"] == 1 and builder.builder.unsaved == 3
+
+
+def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world, tmp_path):
+    map_path = tmp_path / "auto.mfmap"
+    builder = ros_graph.start(MapBuilderNode, preset="auto", map_path=str(map_path))
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(3)
+    n_scans = SAMPLE_SCANS + 3
+    for index in range(n_scans):
+        points, pose = scan_world(world, 3.0 * index - 20.0, 2.0, 0.1, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(10.0 + n_scans), "map", "velodyne",
+                                      np.eye(4)))
+    # The first SAMPLE_SCANS scans wait for the derivation, then all become references.
+    assert ros_graph.wait_for(lambda: len(builder.builder.map) == n_scans)
+    builder.finish()
+    saved = ReferenceMap.load(map_path)
+    assert len(saved) == n_scans
+    assert saved.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
+    assert saved.params.z_min is not None and saved.params.z_min < 0
