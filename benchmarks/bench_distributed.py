@@ -12,9 +12,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from mf_lpr_ros.pipeline.distributed import dask_client
 from mf_lpr_ros.evaluation.benchmarks import SUITES
 from mf_lpr_ros.evaluation.suite import run_suite
+from mf_lpr_ros.pipeline.distributed import dask_client
 
 
 def timed_run(root: Path, methods: list[str], workers: int | None) -> float:

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live.localiser import Localiser
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.live.localiser import Localiser
 
 
 def rss_mb() -> float:

@@ -24,10 +24,10 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from mf_lpr_ros.config import preset
+from mf_lpr_ros.core.pose import planar, wrap_angle
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
-from mf_lpr_ros.core.pose import planar, wrap_angle
 from mf_lpr_ros.ros.demo import format_rows
 from mf_lpr_ros.ros.graph import RosGraph
 from mf_lpr_ros.ros.localiser import LocaliserNode

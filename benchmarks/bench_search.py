@@ -28,14 +28,14 @@ import numpy as np
 from scipy.signal import fftconvolve
 from tqdm import tqdm
 
-from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.core.descriptor import pool, rotate_occupancy, weighted
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.pipeline.mapping import describe_scan
 from mf_lpr_ros.core.references import select_references
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.pipeline.mapping import describe_scan
 
 PARAMS = DescriptorParams(voxel_size=0.4)
 OCCUPIED_FRACTION = 0.12

@@ -11,11 +11,12 @@ publish_mode on_request publishes one pose per ~/relocalise call, continuous one
 scan. The managed (lifecycle) variant: localiser_managed.launch.py.
 """
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 ARGUMENTS = {
     "preset": ("default", "parameter preset: a file config/<preset>.yaml"),

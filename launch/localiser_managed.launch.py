@@ -9,11 +9,12 @@ it from your own nav2 lifecycle manager instead, add "localiser" to its node_nam
 bond_timeout 0.0 (or use a manager of its own, as here) and launch with manager:=false.
 """
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 ARGUMENTS = {
     "preset": ("default", "parameter preset: a file config/<preset>.yaml"),

@@ -6,11 +6,12 @@
 preset picks config/<preset>.yaml; the map is saved every save_period_s and at shutdown.
 """
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 ARGUMENTS = {
     "preset": ("default", "parameter preset: a file config/<preset>.yaml"),

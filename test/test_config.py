@@ -1,8 +1,8 @@
 import pytest
 
 from mf_lpr_ros.config import PRESETS, Config, load_config, preset, preset_file_text
-from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.errors import ConfigError
+from mf_lpr_ros.params import DescriptorParams, SearchParams
 
 REPO_CONFIGS = sorted((__import__("pathlib").Path(__file__).parents[1] / "config").glob("*.yaml"))
 

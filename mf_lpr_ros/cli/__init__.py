@@ -10,8 +10,14 @@ import argparse
 import sys
 
 from mf_lpr_ros.cli import demos, evaluate, localise, maps, presets
-from mf_lpr_ros.errors import (ConfigError, DatasetError, InvalidCloudError, MapFileError,
-                               MissingDependencyError, UnitFailure)
+from mf_lpr_ros.errors import (
+    ConfigError,
+    DatasetError,
+    InvalidCloudError,
+    MapFileError,
+    MissingDependencyError,
+    UnitFailure,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,8 +6,6 @@ import argparse
 from pathlib import Path
 
 
-
-
 def cmd_global_demo(args: argparse.Namespace) -> int:
     from mf_lpr_ros.sim import global_demo
 

@@ -6,11 +6,16 @@ import argparse
 import json
 from pathlib import Path
 
-
-from mf_lpr_ros.evaluation.methods import METHODS
-from mf_lpr_ros.cli.common import (METHOD_KEYS, SOURCE_HELP, add_common, add_scheduler, cluster,
-                                   config_from_arguments)
+from mf_lpr_ros.cli.common import (
+    METHOD_KEYS,
+    SOURCE_HELP,
+    add_common,
+    add_scheduler,
+    cluster,
+    config_from_arguments,
+)
 from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.evaluation.methods import METHODS
 from mf_lpr_ros.evaluation.suite import DEFAULT_METHODS, write_json_atomic
 
 

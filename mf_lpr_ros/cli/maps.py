@@ -6,10 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
-
+from mf_lpr_ros.cli.common import (
+    SOURCE_HELP,
+    add_common,
+    add_scheduler,
+    cluster,
+    config_from_arguments,
+)
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.cli.common import (SOURCE_HELP, add_common, add_scheduler, cluster,
-                                   config_from_arguments)
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import open_source
 
@@ -59,8 +63,8 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
 
 
 def _build_global_map(args: argparse.Namespace, config: Config) -> int:
-    from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
     from mf_lpr_ros.pipeline.global_cloud import read_trajectory
+    from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
 
     trajectory = read_trajectory(args.trajectory) if args.trajectory else None
     render = RenderParams(spacing_m=args.spacing_m or RenderParams.spacing_m,

@@ -27,10 +27,10 @@ from typing import Iterable
 import numpy as np
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.params import DescriptorParams
-from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.core.descriptor import occupied_unit_voxels, voxel_size_for_density
 from mf_lpr_ros.core.pose import level_points
+from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.params import DescriptorParams
 
 SAMPLE_SCANS = 12
 GROUND_BIN_M = 0.1

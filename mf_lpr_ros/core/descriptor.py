@@ -13,8 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.params import DescriptorParams
 
 MAX_DENSE_VOXEL_CELLS = 1 << 24
 

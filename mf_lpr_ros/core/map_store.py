@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from mf_lpr_ros import __version__
-from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.config import descriptor_params_from_dict
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
+from mf_lpr_ros.params import DescriptorParams
 
 MAGIC = b"MFLPRMAP"
 FORMAT_VERSION = 1

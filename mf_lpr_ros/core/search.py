@@ -10,13 +10,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mf_lpr_ros.params import SearchParams
-from mf_lpr_ros.core.descriptor import (footprint, pooled_weights, prepare_rotations,
-                                        rotate_occupancy, turns_with_sensor, weighted)
-from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.backends import make_backend
+from mf_lpr_ros.core.descriptor import (
+    footprint,
+    pooled_weights,
+    prepare_rotations,
+    rotate_occupancy,
+    turns_with_sensor,
+    weighted,
+)
+from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
+from mf_lpr_ros.params import SearchParams
 
 # Scale from normalised peak curvature to variance: a peak whose score halves one cell away
 # gets a standard deviation of ~0.3 cell before inflation by low confidence.

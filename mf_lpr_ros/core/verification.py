@@ -23,9 +23,9 @@ from typing import Callable
 
 import numpy as np
 
-from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.core.pose import compose_planar, relative_planar, wrap_angle
 from mf_lpr_ros.core.search import MatchResult
+from mf_lpr_ros.params import SearchParams
 
 
 @dataclass

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import ClassVar, Iterable, Iterator
 
 import numpy as np
+
 from mf_lpr_ros.errors import DatasetError
 
 

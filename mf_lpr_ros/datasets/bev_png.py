@@ -15,8 +15,8 @@ from typing import Iterator
 import numpy as np
 from PIL import Image
 
+from mf_lpr_ros.datasets.base import Scan, Sequence, read_kitti_poses, register_loader
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, read_kitti_poses
 
 PIXEL_SIZE_M = 0.4
 COUNT_SCALE = 25.5

@@ -7,9 +7,14 @@ from typing import Iterator
 
 import numpy as np
 
+from mf_lpr_ros.datasets.base import (
+    Scan,
+    Sequence,
+    read_kitti_poses,
+    read_xyzi_bin,
+    register_loader,
+)
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import (Scan, Sequence, read_kitti_poses, read_xyzi_bin,
-                                      register_loader)
 
 
 @register_loader

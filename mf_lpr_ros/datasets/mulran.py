@@ -13,9 +13,15 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.core.pose import euler_pose
+from mf_lpr_ros.datasets.base import (
+    Scan,
+    Sequence,
+    numbered_files,
+    poses_at_stamps,
+    read_xyzi_bin,
+    register_loader,
+)
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import (Scan, Sequence, numbered_files, poses_at_stamps,
-                                      read_xyzi_bin, register_loader)
 
 # base_T_ouster from the MulRan calibration (x, y, z m; roll, pitch, yaw deg).
 BASE_T_OUSTER = (1.7042, -0.021, 1.8047, 0.0001, 0.0003, 179.6654)

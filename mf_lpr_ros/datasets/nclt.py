@@ -14,9 +14,14 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.core.pose import euler_pose
+from mf_lpr_ros.datasets.base import (
+    Scan,
+    Sequence,
+    numbered_files,
+    poses_at_stamps,
+    register_loader,
+)
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import (Scan, Sequence, numbered_files, poses_at_stamps,
-                                      register_loader)
 
 # body_T_velodyne from the NCLT development kit (x, y, z m; roll, pitch, yaw deg).
 BODY_T_VELODYNE = (0.002, -0.004, -0.957, 0.807, 0.166, -90.703)

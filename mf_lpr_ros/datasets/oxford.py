@@ -22,9 +22,14 @@ import numpy as np
 from PIL import Image
 
 from mf_lpr_ros.core.pose import euler_pose
+from mf_lpr_ros.datasets.base import (
+    Scan,
+    Sequence,
+    numbered_files,
+    poses_at_stamps,
+    register_loader,
+)
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import (Scan, Sequence, numbered_files, poses_at_stamps,
-                                      register_loader)
 
 # x, y, z (m), roll, pitch, yaw (rad) relative to the stereo camera: the SDK's extrinsics/*.txt.
 STEREO_T_VELODYNE_LEFT = (-0.60072, -0.34077, -0.26837, -0.0053948, -0.041998, -3.1337)

@@ -12,9 +12,15 @@ from typing import Iterator
 
 import numpy as np
 
+from mf_lpr_ros.datasets.base import (
+    Scan,
+    Sequence,
+    nearest_keys,
+    read_kitti_poses,
+    read_tum_poses,
+    register_loader,
+)
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import (Scan, Sequence, nearest_keys, read_kitti_poses,
-                                      read_tum_poses, register_loader)
 from mf_lpr_ros.io.pcd import read_pcd
 from mf_lpr_ros.io.ply import read_ply
 

@@ -12,11 +12,11 @@ from typing import Iterator
 
 import numpy as np
 
-from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 from mf_lpr_ros.core.pose import interpolate_poses
-from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.datasets.base import Scan, Sequence, register_loader
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence
+from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"

@@ -16,8 +16,8 @@ from typing import Iterator
 import numpy as np
 
 from mf_lpr_ros.core.pose import pose_matrix
+from mf_lpr_ros.datasets.base import Scan, Sequence, nearest_keys, read_xyzi_bin, register_loader
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.base import register_loader, Scan, Sequence, nearest_keys, read_xyzi_bin
 from mf_lpr_ros.io.pcd import read_pcd
 
 CLOUD_FOLDERS = ("Clouds_downsampled", "Clouds")

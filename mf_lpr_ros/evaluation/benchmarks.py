@@ -6,7 +6,6 @@ from __future__ import annotations
 from mf_lpr_ros.evaluation.protocol import Protocol
 from mf_lpr_ros.evaluation.suite import Published, Rule, Suite
 
-
 # BEVPlace's KITTI protocol (its own BEV images): database and query frame ranges per sequence,
 # every database frame a reference, a query counts when a database frame lies within 5 m.
 _BEVPLACE_FRAMES = {"00": ((0, 2999), (3200, 4540)), "02": ((0, 3399), (3600, 4660)),

@@ -12,10 +12,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mf_lpr_ros.config import preset  # noqa: E402
+from mf_lpr_ros.core.pose import planar  # noqa: E402
 from mf_lpr_ros.datasets import open_source  # noqa: E402
 from mf_lpr_ros.evaluation.protocol import PairResult  # noqa: E402
 from mf_lpr_ros.pipeline.mapping import describe_scan  # noqa: E402
-from mf_lpr_ros.core.pose import planar  # noqa: E402
 
 MAX_LEGEND = 8
 

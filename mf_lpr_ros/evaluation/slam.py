@@ -15,13 +15,17 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.pose import compose_planar, planar, relative_planar
+from mf_lpr_ros.core.pose_graph import (
+    PoseGraph,
+    PoseGraphParams,
+    absolute_trajectory_error,
+    aligned_positions,
+)
 from mf_lpr_ros.datasets.base import PoseOverride, Sequence
 from mf_lpr_ros.evaluation.methods import MatchedFilterMethod
 from mf_lpr_ros.evaluation.protocol import Protocol, run_protocol, select
-from mf_lpr_ros.core.pose import compose_planar, planar, relative_planar
 from mf_lpr_ros.optional import require
-from mf_lpr_ros.core.pose_graph import (PoseGraph, PoseGraphParams, absolute_trajectory_error,
-                                        aligned_positions)
 
 
 @dataclass(frozen=True)

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.evaluation.methods import METHODS
 from mf_lpr_ros.evaluation.protocol import PairResult, Protocol, evaluate_pair
+from mf_lpr_ros.progress import progress_bar
 
 DEFAULT_METHODS = ("mf-lpr", "scan-context")
 TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m",

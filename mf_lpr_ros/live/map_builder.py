@@ -8,8 +8,13 @@ from pathlib import Path
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, map_metadata
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.references import (DescribedScan, SpacingGate, add_references,
-                                        describe_observation, descriptor_points)
+from mf_lpr_ros.core.references import (
+    DescribedScan,
+    SpacingGate,
+    add_references,
+    describe_observation,
+    descriptor_points,
+)
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.pose_buffer import PairedScan
 

@@ -2,16 +2,18 @@
 and held in tiles for rendering views."""
 
 from __future__ import annotations
+
 import os
 import tempfile
 from pathlib import Path
+
 import numpy as np
-from mf_lpr_ros.errors import DatasetError
+
+from mf_lpr_ros.core.descriptor import one_point_per_voxel
 from mf_lpr_ros.datasets.base import Sequence, read_kitti_poses, read_tum_poses
+from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.io.pcd import read_pcd
 from mf_lpr_ros.io.ply import read_ply
-from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.core.descriptor import one_point_per_voxel
 from mf_lpr_ros.progress import progress_bar
 
 

@@ -10,8 +10,13 @@ import numpy as np
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.references import (DescribedScan, add_references, describe_observation,
-                                        descriptor_points, select_references)
+from mf_lpr_ros.core.references import (
+    DescribedScan,
+    add_references,
+    describe_observation,
+    descriptor_points,
+    select_references,
+)
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.progress import progress_bar

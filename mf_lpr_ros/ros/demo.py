@@ -20,19 +20,19 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.config import preset as named_preset
-from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.evaluation.protocol import revisits
 from mf_lpr_ros.core.pose import planar, planar_error, pose_matrix
 from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
-from mf_lpr_ros.sim.simulator import WORLDS, write_bag
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.evaluation.protocol import revisits
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.ros.graph import RosGraph
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
-from mf_lpr_ros.ros.pose_graph import PoseGraphNode
 from mf_lpr_ros.ros.messages import decode_loop_closure
-from mf_lpr_ros.io.messages import stamp_to_seconds
+from mf_lpr_ros.ros.pose_graph import PoseGraphNode
 from mf_lpr_ros.ros.replay import replay_bag
+from mf_lpr_ros.sim.simulator import WORLDS, write_bag
 
 # Bump when the simulator's output changes, so cached bags are rebuilt.
 SIMULATION_VERSION = 1

@@ -37,19 +37,23 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapParameterMismatch
 from mf_lpr_ros.live.localiser import Localiser, relative_transform, relocalised_pose
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
-from mf_lpr_ros.errors import MapParameterMismatch
-from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.lidar_node import run_node
 from mf_lpr_ros.ros.localiser_params import LIO_SAM_TOPIC, LocaliserParameters
+from mf_lpr_ros.ros.messages import (
+    candidates_message,
+    confidences_message,
+    diagnostics_message,
+    lio_sam_loop_message,
+    loop_closure_message,
+    match_markers,
+    relocalisation_message,
+)
 from mf_lpr_ros.ros.params import NO_POSES, ParameterFault
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
-from mf_lpr_ros.ros.messages import (candidates_message, confidences_message, diagnostics_message,
-                                     lio_sam_loop_message, loop_closure_message, match_markers,
-                                     relocalisation_message)
 
 # Reliable (AMCL's /initialpose subscription) and transient local: a late subscriber still gets
 # the last pose.

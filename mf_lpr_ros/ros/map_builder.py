@@ -19,18 +19,15 @@ import os
 import threading
 from pathlib import Path
 
-
 from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
-from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapFileError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
-from mf_lpr_ros.errors import MapFileError
-from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.ros.params import POSE_SOURCES, ParameterFault
 from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
+from mf_lpr_ros.ros.params import POSE_SOURCES, ParameterFault
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
 IF_EXISTS = ("error", "append", "overwrite")

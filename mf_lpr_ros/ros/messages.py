@@ -12,21 +12,19 @@ Loop closures travel in the formats the localiser's loop_closure_format names:
 
 from __future__ import annotations
 
-
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import (ColorRGBA, Float64MultiArray, Header, MultiArrayDimension,
-                          MultiArrayLayout)
+from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimension, MultiArrayLayout
 from visualization_msgs.msg import Marker, MarkerArray
 
-from mf_lpr_ros.live.localiser import LiveMatch
-from mf_lpr_ros.io.pointcloud import xyz_to_pointcloud2_layout
 from mf_lpr_ros.core.pose import matrix_to_quaternion, pose_matrix
 from mf_lpr_ros.io.messages import seconds_to_stamp_parts, stamp_to_seconds
+from mf_lpr_ros.io.pointcloud import xyz_to_pointcloud2_layout
+from mf_lpr_ros.live.localiser import LiveMatch
 
 # Variance given to the dimensions a planar match does not observe (z, roll, pitch).
 UNOBSERVED_VARIANCE = 1e3

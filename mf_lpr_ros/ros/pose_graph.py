@@ -18,11 +18,11 @@ from std_msgs.msg import Float64MultiArray, Header
 from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.pose_graph import KeyframeGraph
 from mf_lpr_ros.errors import MissingDependencyError
+from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
+from mf_lpr_ros.ros.messages import decode_loop_closure, seconds_to_stamp, set_pose
 from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.ros.qos import sensor_qos
-from mf_lpr_ros.ros.messages import decode_loop_closure, seconds_to_stamp, set_pose
-from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 
 
 class PoseGraphNode(LidarNode):

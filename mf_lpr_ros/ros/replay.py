@@ -14,10 +14,10 @@ from pathlib import Path
 import rclpy
 from rclpy.node import Node
 
+from mf_lpr_ros.datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
+from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.ros.qos import sensor_qos, wait_for_subscribers
-from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.datasets.rosbag import CLOUD_TYPE, POSE_TYPES, open_bag
 
 DEFAULT_TYPES = (CLOUD_TYPE, *POSE_TYPES, "tf2_msgs/msg/TFMessage")
 

@@ -18,14 +18,14 @@ import numpy as np
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_points, one_point_per_voxel
-from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar_error, pose_matrix, quaternion_from_yaw
-from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
+from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.sim.lidar import cast
-from mf_lpr_ros.sim.simulator import drive, urban_traversals
 from mf_lpr_ros.sim.scenes import scene_cloud
+from mf_lpr_ros.sim.simulator import drive, urban_traversals
 
 LANE_OFFSETS_M = (5.0, -6.0, 7.5, -9.0)
 QUERY_STEP_M = 9.0

@@ -1,9 +1,12 @@
 """A spinning multi-beam LiDAR ray-cast against a scene (sim.scenes)."""
 
 from __future__ import annotations
+
 import math
 from dataclasses import dataclass
+
 import numpy as np
+
 from mf_lpr_ros.sim.scenes import Scene
 
 

@@ -2,8 +2,10 @@
 turned about z and spheres on a ground plane at z = 0, seeded."""
 
 from __future__ import annotations
+
 import math
 from dataclasses import dataclass, field, replace
+
 import numpy as np
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.sim.lidar import HDL32, VLP16, SensorModel, cast
 from mf_lpr_ros.sim.scenes import Scene, forest_scene, moved_objects, urban_scene
 

@@ -5,17 +5,16 @@ import math
 import numpy as np
 import pytest
 
-from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor
 from mf_lpr_ros.config import Config, config_from_dict, preset
-from mf_lpr_ros.params import DescriptorParams
-from mf_lpr_ros.errors import ConfigError
-from mf_lpr_ros.datasets import open_source
-from mf_lpr_ros.errors import InvalidCloudError
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor
 from mf_lpr_ros.core.descriptor import voxel_size_for_density
+from mf_lpr_ros.core.pose import pose_matrix
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.errors import ConfigError, InvalidCloudError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
+from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.mapping import build_map
-from mf_lpr_ros.core.pose import pose_matrix
 from mf_lpr_ros.sim.synthetic import route, scan_world, write_kitti_sequence
 
 

@@ -1,11 +1,20 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.core.descriptor import (
+    auto_voxel_size,
+    cap_patches,
+    describe_density_image,
+    describe_points,
+    footprint,
+    height_density,
+    pool,
+    pooled_weights,
+    rotate_occupancy,
+    weighted,
+)
 from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.core.descriptor import (auto_voxel_size, cap_patches, describe_density_image,
-                                        describe_points, footprint, height_density, pool,
-                                        pooled_weights, rotate_occupancy, weighted)
+from mf_lpr_ros.params import DescriptorParams
 
 PARAMS = DescriptorParams(voxel_size=0.5, density_threshold=1.0)
 

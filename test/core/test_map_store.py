@@ -3,12 +3,11 @@ import struct
 
 import numpy as np
 import pytest
+from helpers import PARAMS, make_map
 
-from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.core.map_store import FORMAT_VERSION, ReferenceMap
 from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
-
-from helpers import PARAMS, make_map
+from mf_lpr_ros.params import DescriptorParams
 
 
 def test_round_trip_keeps_everything(tmp_path, rng):

@@ -12,10 +12,10 @@ import pytest
 pytest.importorskip("gtsam", reason="gtsam not installed (pip install gtsam)")
 
 from mf_lpr_ros.config import preset  # noqa: E402
-from mf_lpr_ros.datasets import open_source  # noqa: E402
-from mf_lpr_ros.evaluation.protocol import Protocol  # noqa: E402
 from mf_lpr_ros.core.pose import compose_planar, relative_planar  # noqa: E402
 from mf_lpr_ros.core.pose_graph import KeyframeGraph, PoseGraph, absolute_trajectory_error  # noqa: E402
+from mf_lpr_ros.datasets import open_source  # noqa: E402
+from mf_lpr_ros.evaluation.protocol import Protocol  # noqa: E402
 from mf_lpr_ros.evaluation.slam import DriftModel, slam_eval  # noqa: E402
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence  # noqa: E402
 

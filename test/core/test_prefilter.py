@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.core.descriptor import pooled_weights, rotate_occupancy
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.pipeline.mapping import describe_scan
-from mf_lpr_ros.core.references import select_references
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
+from mf_lpr_ros.core.references import select_references
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.pipeline.mapping import describe_scan
 
 
 def blobs(rng, n_blobs=25, size=120):

@@ -1,13 +1,13 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, rotate_occupancy
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.pipeline.mapping import describe_scan
 from mf_lpr_ros.core.pose import planar, wrap_angle
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.pipeline.mapping import describe_scan
 from mf_lpr_ros.sim.synthetic import make_world, scan_world
 
 PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)

@@ -6,14 +6,14 @@ import sys
 import numpy as np
 import pytest
 
-from mf_lpr_ros.errors import ConfigError
-from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.core.backends import resolve_backend
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
-from mf_lpr_ros.core.backends import resolve_backend
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.errors import ConfigError
+from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.sim.synthetic import scan_world
 
 torch_backend = pytest.importorskip("mf_lpr_ros.core.backends.torch_backend",

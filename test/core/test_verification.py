@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import compose_planar
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
-from mf_lpr_ros.sim.synthetic import scan_world
 from mf_lpr_ros.core.verification import MatchVerifier
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.sim.synthetic import scan_world
 
 PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
 PLACES = [(0.0, 0.0, 0.0), (25.0, 0.0, 1.0), (0.0, 25.0, -2.0), (-25.0, -10.0, 2.5)]

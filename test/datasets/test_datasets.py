@@ -1,11 +1,16 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.datasets import (BevPngSequence, KittiSequence, PointFolderSequence, RosbagSequence,
-                                 open_source)
+from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.datasets import (
+    BevPngSequence,
+    KittiSequence,
+    PointFolderSequence,
+    RosbagSequence,
+    open_source,
+)
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.io.pcd import read_pcd
-from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
 
 
 def write_kitti(folder, n=3, times=None):
@@ -97,9 +102,9 @@ def test_real_bev_axes_agree_with_poses(data_dir):
     """Frames 100 and 4529 of KITTI 00 are 0.14 m apart with ~12.6 deg of yaw difference."""
     from mf_lpr_ros.config import preset
     from mf_lpr_ros.core.map_store import ReferenceMap
-    from mf_lpr_ros.pipeline.mapping import describe_scan
     from mf_lpr_ros.core.pose import planar, wrap_angle
     from mf_lpr_ros.core.search import MatchedFilterIndex
+    from mf_lpr_ros.pipeline.mapping import describe_scan
 
     config = preset("kitti")
     scans = {s.index: s for s in open_source(data_dir / "kitti_bev/00").iter_scans([100, 4529])}
@@ -114,8 +119,8 @@ def test_real_bev_axes_agree_with_poses(data_dir):
 
 
 def test_nclt_records_ground_truth_and_frames(tmp_path):
-    from mf_lpr_ros.datasets import NcltSequence
     from mf_lpr_ros.core.pose import euler_pose, planar
+    from mf_lpr_ros.datasets import NcltSequence
 
     (tmp_path / "velodyne_sync").mkdir()
     # Names are microseconds; listed out of order on purpose.
@@ -237,8 +242,8 @@ def test_oxford_bin_and_png_agree_and_time_order(tmp_path):
 
 
 def test_oxford_ins_ned_becomes_enu(tmp_path):
-    from mf_lpr_ros.datasets import OxfordRadarSequence
     from mf_lpr_ros.core.pose import planar
+    from mf_lpr_ros.datasets import OxfordRadarSequence
 
     session = tmp_path / "s"
     (session / "velodyne_left").mkdir(parents=True)

@@ -7,11 +7,11 @@ import pickle
 import numpy as np
 import pytest
 
-from mf_lpr_ros.evaluation import suite as suite_module
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.evaluation.protocol import Protocol
+from mf_lpr_ros.evaluation import suite as suite_module
 from mf_lpr_ros.evaluation.benchmarks import SUITES
+from mf_lpr_ros.evaluation.protocol import Protocol
 from mf_lpr_ros.evaluation.suite import Published, Rule, Suite, run_suite
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 

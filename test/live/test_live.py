@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.errors import InvalidPoseError, MapParameterMismatch
 from mf_lpr_ros.live.localiser import Localiser, relocalised_pose
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan, PoseBuffer, ScanPoseSynchroniser
-from mf_lpr_ros.errors import MapParameterMismatch
-from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.sim.synthetic import route, scan_world
 
 CONFIG = preset("kitti")

@@ -14,13 +14,13 @@ import time
 
 import numpy as np
 import pytest
+from helpers import make_map
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.live.localiser import Localiser
-from mf_lpr_ros.errors import MapFileError
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.errors import MapFileError
+from mf_lpr_ros.live.localiser import Localiser
 from mf_lpr_ros.sim.synthetic import scan_world
-from helpers import make_map
 
 BIN = os.path.dirname(sys.executable)
 

@@ -11,15 +11,15 @@ import pytest
 
 pytest.importorskip("distributed", reason="Dask distributed is not installed (make setup)")
 
-from mf_lpr_ros.pipeline.bulk import SourceSpec, build_maps  # noqa: E402
 from mf_lpr_ros.cli import main  # noqa: E402
 from mf_lpr_ros.config import preset  # noqa: E402
 from mf_lpr_ros.datasets import open_source  # noqa: E402
 from mf_lpr_ros.errors import UnitFailure
-from mf_lpr_ros.pipeline.distributed import dask_client, run_units  # noqa: E402
-from mf_lpr_ros.pipeline.mapping import build_map  # noqa: E402
 from mf_lpr_ros.evaluation.benchmarks import SUITES
 from mf_lpr_ros.evaluation.suite import run_suite  # noqa: E402
+from mf_lpr_ros.pipeline.bulk import SourceSpec, build_maps  # noqa: E402
+from mf_lpr_ros.pipeline.distributed import dask_client, run_units  # noqa: E402
+from mf_lpr_ros.pipeline.mapping import build_map  # noqa: E402
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence  # noqa: E402
 
 

@@ -7,11 +7,11 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from sensor_msgs.msg import PointCloud2
+from test_ros_nodes import errors, planar_of_message
 
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.managed_localiser import ManagedLocaliserNode
 from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
-from test_ros_nodes import errors, planar_of_message
 
 
 class Lifecycle:

@@ -13,12 +13,12 @@ from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReli
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
+from test_ros_nodes import errors, planar_of_message
 
 from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
-from mf_lpr_ros.io.messages import stamp_to_seconds
-from test_ros_nodes import errors, planar_of_message
 
 # nav2 AMCL's /initialpose subscription: reliable, volatile.
 AMCL_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,

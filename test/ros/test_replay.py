@@ -10,8 +10,8 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.errors import DatasetError
-from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 from mf_lpr_ros.ros.replay import replay_bag
 
 CLOUD = "sensor_msgs/msg/PointCloud2"

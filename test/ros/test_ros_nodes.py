@@ -13,13 +13,16 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar, pose_matrix, wrap_angle
-from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
-from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message, points_to_pointcloud2,
-                                     seconds_to_stamp)
+from mf_lpr_ros.ros.messages import (
+    decode_loop_closure,
+    odometry_message,
+    points_to_pointcloud2,
+    seconds_to_stamp,
+)
+from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.sim.synthetic import route, scan_world
-
 
 
 def planar_of_message(message: PoseWithCovarianceStamped) -> np.ndarray:

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from nav_msgs.msg import Odometry
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.config import preset
+from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
-from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.sim.synthetic import route, scan_world
 

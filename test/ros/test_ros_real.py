@@ -8,22 +8,26 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
+from test_ros_nodes import errors, planar_of_message
 
 from mf_lpr_ros.config import preset
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
+from mf_lpr_ros.evaluation.protocol import revisits
+from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
-from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.pipeline.mapping import build_map
-from mf_lpr_ros.evaluation.protocol import revisits
-from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
-from mf_lpr_ros.ros.messages import (decode_loop_closure, odometry_message, points_to_pointcloud2,
-                                     seconds_to_stamp)
-from mf_lpr_ros.io.messages import stamp_to_seconds
+from mf_lpr_ros.ros.messages import (
+    decode_loop_closure,
+    odometry_message,
+    points_to_pointcloud2,
+    seconds_to_stamp,
+)
 from mf_lpr_ros.ros.replay import replay_bag
-from test_ros_nodes import errors, planar_of_message
 
 CONFIG = preset("handheld")
 EXCLUDE_RECENT_S = 25.0

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.sim.lidar import VLP16, SensorModel, _box_hits, _cylinder_hits, _sphere_hits, cast
-from mf_lpr_ros.sim.simulator import WORLDS, write_bag
 from mf_lpr_ros.sim.scenes import Scene, urban_scene
+from mf_lpr_ros.sim.simulator import WORLDS, write_bag
 
 EXACT = SensorModel("test", (-10.0, 0.0, 10.0), azimuth_step_deg=1.0, range_noise_m=0.0,
                     dropout=0.0, max_range_m=60.0)
