@@ -41,6 +41,14 @@ class DescriptorParams:
         in the search, and rotations wider than the field of view (no common ground) are not
         searched. Measured on the HKU Avia keyframes (70 deg): recall unchanged (0.714), 2
         false closures published where 360 published none, so it is off by default.
+    submap_m: describe each scan together with the earlier scans of the last submap_m metres
+        of travel, moved into its sensor frame by odometry (mf_lpr_ros/core/submap.py), for
+        sparse or narrow sensors that see too little of a place in one scan. 0 = single scans
+        (dense 360-degree sensors). Needs odometry: the source's poses offline, pose_source
+        in the nodes; without it, single scans. The map records it, and the localiser uses
+        the map's window.
+    submap_max_scans, submap_max_age_s: the window also holds at most this many scans and none
+        older than this (a robot standing still; a sensor faster than the odometry moves).
     """
 
     size: int = 120
@@ -59,6 +67,9 @@ class DescriptorParams:
     crop: str = "disc"
     field_of_view_deg: float = 360.0
     heading_deg: float = 0.0
+    submap_m: float = 0.0
+    submap_max_scans: int = 100
+    submap_max_age_s: float = 60.0
 
     def __post_init__(self) -> None:
         require_parameter(self.size >= 8 and self.size % 2 == 0, "size", "an even integer >= 8",
@@ -87,6 +98,12 @@ class DescriptorParams:
                               self.z_min)
         if self.max_range is not None:
             require_parameter(self.max_range > 0, "max_range", "> 0", self.max_range)
+        require_parameter(self.submap_m >= 0, "submap_m", ">= 0 (0 = single scans)",
+                          self.submap_m)
+        require_parameter(self.submap_max_scans >= 1, "submap_max_scans", ">= 1",
+                          self.submap_max_scans)
+        require_parameter(self.submap_max_age_s > 0, "submap_max_age_s", "> 0",
+                          self.submap_max_age_s)
 
     @property
     def extent_m(self) -> float:

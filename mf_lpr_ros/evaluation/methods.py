@@ -1,13 +1,15 @@
 """The methods compared under the evaluation protocol: MF-LPR (ours), Scan Context, MapClosures.
 
 Each describes scans (describe), takes the references' descriptors (build) and answers a query
-among the first n_active references (query) with a Retrieval.
+among the first n_active references (query) with a Retrieval. A method's submap_window says
+which local map it describes (core.submap; None: single scans): the protocol reads the
+sequences through it.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +21,7 @@ from mf_lpr_ros.core.pose import planar, wrap_angle
 from mf_lpr_ros.core.references import DescribedScan, add_references
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.core.verification import MatchVerifier
 from mf_lpr_ros.datasets import Scan
 from mf_lpr_ros.evaluation.scan_context import ScanContextIndex
@@ -50,6 +53,7 @@ class MatchedFilterMethod:
 
     def __init__(self, config: Config) -> None:
         self.config = config
+        self.submap_window = SubmapWindow.for_descriptor(config.descriptor)
         self._index: MatchedFilterIndex | None = None
         self._verifier = MatchVerifier(config.search)
 
@@ -81,6 +85,7 @@ class ScanContextMethod:
     Context yaw, so its corrected recall is its retrieval recall. Confidence: 1 - distance."""
 
     name = "Scan Context"
+    submap_window = None
 
     def __init__(self, config: Config) -> None:
         self.config = config
@@ -108,9 +113,9 @@ class ScanContextMethod:
 class MapClosuresMethod:
     """MapClosures (Gupta et al., the map-closures package): ORB features of BEV density maps in
     an HBST tree, then RANSAC. Fed as its own pipeline feeds it: local maps, not single scans.
-    Each scan's local map holds the scans of the last local_map_m metres of travel (those the
-    protocol describes, up to and including it), put in that scan's frame with the sequence's
-    poses (its pipeline uses kiss-icp odometry instead) and voxelised at its density-map
+    Each scan's local map holds the scans of the last local_map_m metres of travel, put in that
+    scan's frame with the sequence's poses (its pipeline uses kiss-icp odometry instead; the
+    protocol makes them with core.submap, as ours) and voxelised at its density-map
     resolution. Its pose is not used: the matched reference's position is reported.
     Confidence: RANSAC inliers. Every closure it returns passed its own RANSAC test, so each
     is published."""
@@ -125,29 +130,15 @@ class MapClosuresMethod:
         resolution = density_map_resolution or max(config.descriptor.voxel_size, 0.1)
         self.config = config
         self.resolution = resolution
-        self.local_map_m = local_map_m
+        self.submap_window = SubmapWindow(local_map_m, max_scans=10 ** 6, max_age_s=math.inf,
+                                          voxel_m=resolution, reach_m=math.inf)
         self._closures = MapClosures(MapClosuresConfig(density_map_resolution=resolution))
         self._poses = np.zeros((0, 3))
         self._next_id = 0
-        self._recent: dict[bool, deque] = {True: deque(), False: deque()}
 
     def describe(self, scan: Scan, *, reference: bool) -> np.ndarray:
-        points = one_point_per_voxel(points_for_baselines(scan, self.config).astype(np.float64),
-                                     self.resolution)
-        if scan.pose is None or not np.isfinite(scan.pose).all():
-            return points
-        recent = self._recent[reference]
-        travelled = 0.0
-        if recent:
-            travelled = recent[-1][0] + float(np.linalg.norm(scan.pose[:3, 3] -
-                                                             recent[-1][1][:3, 3]))
-        recent.append((travelled, scan.pose, points))
-        while travelled - recent[0][0] > self.local_map_m:
-            recent.popleft()
-        to_scan = np.linalg.inv(scan.pose)
-        return one_point_per_voxel(np.concatenate([
-            cloud @ (to_scan @ pose)[:3, :3].T + (to_scan @ pose)[:3, 3]
-            for _, pose, cloud in recent]), self.resolution)
+        return one_point_per_voxel(points_for_baselines(scan, self.config).astype(np.float64),
+                                   self.resolution)
 
     def build(self, descriptors: list, poses: np.ndarray, stamps: np.ndarray) -> None:
         for points in descriptors:

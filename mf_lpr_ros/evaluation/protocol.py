@@ -30,6 +30,7 @@ from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.evaluation.methods import make_method
 from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
+from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 _STAMP_MATCH_S = 1e-4
@@ -136,12 +137,13 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
                  progress: bool = True) -> list[QueryRecord]:
     """One record per query (see summarise) for method under a selection.
 
-    The method sees the sequences' poses (the map's poses and each query's odometry);
-    truth_poses, the query sequence's ground truth (and the references' in the single-sequence
-    protocol), defaults to the same poses.
+    The method sees the sequences' poses (the map's poses, each query's odometry and the
+    odometry its submaps are made with); truth_poses, the query sequence's ground truth (and the
+    references' in the single-sequence protocol), defaults to the same poses.
     """
     same_sequence = query is None
-    query_seq = reference if same_sequence else query
+    reference = with_submaps(reference, method.submap_window)
+    query_seq = reference if same_sequence else with_submaps(query, method.submap_window)
     wanted_refs = {int(i): k for k, i in enumerate(selection.references)}
     wanted_queries = set(selection.queries.tolist())
     ref_descriptors: list = [None] * len(wanted_refs)

@@ -52,7 +52,8 @@ class Rule:
     folders within each group (a group is one pattern), queries restricted to the split named by
     query_split (a file under the root, '{group}' replaced by the group's folder name).
     single: each folder's own loop closures. by_preset: the preset is appended to the pairs'
-    names (rules that run the same folders under different presets)."""
+    names (rules that run the same folders under different presets); label, likewise a word
+    of the rule's own (rules that run the same folders under different protocols)."""
 
     kind: str
     preset: str
@@ -61,6 +62,7 @@ class Rule:
     queries: tuple[str, ...] = ()
     query_split: str | None = None
     by_preset: bool = False
+    label: str = ""
 
 
 @dataclass(frozen=True)
@@ -103,8 +105,9 @@ def _label(root: Path, path: Path) -> str:
 
 def _rule_pairs(rule: Rule, root: Path) -> list[Pair]:
     pairs = _untagged_pairs(rule, root)
-    if rule.by_preset:
-        pairs = [replace(pair, name=f"{pair.name} [{rule.preset}]") for pair in pairs]
+    for tag in (rule.label, rule.preset if rule.by_preset else ""):
+        if tag:
+            pairs = [replace(pair, name=f"{pair.name} [{tag}]") for pair in pairs]
     return pairs
 
 

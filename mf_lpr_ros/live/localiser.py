@@ -16,6 +16,7 @@ from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
+from mf_lpr_ros.core.submap import Submap, SubmapWindow
 from mf_lpr_ros.core.verification import MatchVerifier
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
@@ -38,6 +39,8 @@ class LiveMatch:
     fitness: float = math.nan
     support: int = -1
     timings_ms: dict[str, float] = field(default_factory=dict)
+    described_from: str = "single scan"
+    window_complete: bool = True
 
 
 class Localiser:
@@ -49,6 +52,9 @@ class Localiser:
     A match is accepted when it passes verification.MatchVerifier: confidence, min_score,
     distinctiveness, ICP fitness (search.verify_fitness > 0) and, when odometry_known (the
     scans come with odometry poses), odometry consistency.
+    When the map's descriptor has a submap window (descriptor.submap_m), each scan is described
+    with the scans of its window (core.submap): give observe every scan the robot takes, with
+    its odometry pose, searched or not; scans without a pose are described alone.
     """
 
     MODES = ("relocalise", "loop_closure")
@@ -79,8 +85,11 @@ class Localiser:
         if self.verify and mode == "relocalise" and not reference_map.has_clouds:
             raise ValueError("search.verify_fitness needs a map that keeps reference clouds "
                              "(build it with keep_clouds / --keep-clouds), or set it to 0")
+        window = SubmapWindow.for_descriptor(config.descriptor)
+        self.submap = Submap(window) if window.active else None
         self._builder = MapBuilder(config, None, reference_map=reference_map,
-                                   keep_clouds=self.verify) if mode == "loop_closure" else None
+                                   keep_clouds=self.verify, submap=self.submap) \
+            if mode == "loop_closure" else None
 
     @property
     def search(self) -> SearchParams:
@@ -92,6 +101,12 @@ class Localiser:
         if self._builder is None:
             raise RuntimeError("references are only added in loop_closure mode")
         self._incoming.append(scan)
+
+    def observe(self, stamp: float, points: np.ndarray, pose: np.ndarray | None) -> None:
+        """Let a scan join the submap window (safe from any thread; nothing when the map has
+        no window). Every scan taken should, including those never searched."""
+        if self.submap is not None:
+            self.submap.add(stamp, points, pose)
 
     def _integrate_references(self) -> None:
         added = False
@@ -115,6 +130,13 @@ class Localiser:
             self._integrate_references()
         params = self.config.descriptor
         started = time.perf_counter()
+        described_from, complete = "single scan", True
+        if self.submap is not None and pose is not None:
+            self.observe(stamp, points, pose)
+            if self.submap.holds(stamp):
+                submap = self.submap.points_at(stamp)
+                points, described_from, complete = submap.points, submap.describe(), \
+                    submap.complete
         points = descriptor_points(points, pose, params)
         occupancy = describe_observation(params, reference=False, stamp=stamp, points=points)
         descriptor_ms = (time.perf_counter() - started) * 1e3
@@ -128,11 +150,12 @@ class Localiser:
         verdict = self.verifier.verify(
             match, odometry, lambda found: refine_match(found, points, self.map).fitness)
         if match is None:
-            return LiveMatch(stamp, None, False, verdict.reason, descriptor_ms, n_active)
+            return LiveMatch(stamp, None, False, verdict.reason, descriptor_ms, n_active,
+                             described_from=described_from, window_complete=complete)
         timings = {"descriptor": descriptor_ms, **match.timings_ms}
         return LiveMatch(stamp, match, verdict.accepted, verdict.reason, descriptor_ms, n_active,
                          float(self.map.stamps[match.reference_index]), verdict.fitness,
-                         verdict.support, timings)
+                         verdict.support, timings, described_from, complete)
 
     def reference_pose(self, index: int) -> np.ndarray:
         return np.array(self.map.poses[index])

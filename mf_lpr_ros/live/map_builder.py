@@ -15,6 +15,7 @@ from mf_lpr_ros.core.references import (
     describe_observation,
     descriptor_points,
 )
+from mf_lpr_ros.core.submap import Submap, SubmapWindow
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.pose_buffer import PairedScan
 
@@ -25,11 +26,15 @@ class MapBuilder:
     With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
     held back until the descriptor is derived from them (auto_choice then says what was
     chosen), and then described like every later scan; an existing map keeps its parameters.
+    Every scan offered joins the submap window (core.submap) when the descriptor has one, so a
+    reference is described from the scans of its last descriptor.submap_m metres; a caller
+    that already keeps the same window (the loop-closure localiser) passes it as submap.
     """
 
     def __init__(self, config: Config, map_path: str | Path | None, *, frame_id: str = "map",
                  sensor_frame_id: str = "", keep_clouds: bool = False,
-                 reference_map: ReferenceMap | None = None) -> None:
+                 reference_map: ReferenceMap | None = None,
+                 submap: Submap | None = None) -> None:
         self.map_path = None if map_path is None else Path(map_path)
         self.keep_clouds = keep_clouds
         self.auto_choice: str | None = None
@@ -48,6 +53,7 @@ class MapBuilder:
             reference_map.check_params(config.descriptor)
         self.config = config
         self.map = reference_map
+        self.submap = submap if submap is not None else _submap_for(config)
         self.saved_references = len(reference_map)
         positions = reference_map.poses[:, :3, 3]
         self._spacing = SpacingGate(config.spacing_m, positions[-1] if len(positions) else None)
@@ -79,6 +85,7 @@ class MapBuilder:
             raise
         self._held = None
         self.config = resolved
+        self.submap = _submap_for(resolved)
         metadata = dict(self.map.metadata, auto=map_metadata(profile, resolved.descriptor))
         self.map = ReferenceMap(resolved.descriptor, frame_id=self.map.frame_id,
                                 sensor_frame_id=self.map.sensor_frame_id, metadata=metadata)
@@ -95,11 +102,14 @@ class MapBuilder:
         return last
 
     def _offer(self, scan: PairedScan) -> int | None:
+        if self.submap is not None:
+            self.submap.add(scan.stamp, scan.points, scan.pose)
         position = scan.pose[:3, 3]
         if not self._spacing.far_enough(position):
             return None
         params = self.config.descriptor
-        points = descriptor_points(scan.points, scan.pose, params)
+        points = scan.points if self.submap is None else self.submap.points_at(scan.stamp).points
+        points = descriptor_points(points, scan.pose, params)
         occupancy = describe_observation(params, reference=True, stamp=scan.stamp, points=points)
         index = add_references(self.map, [DescribedScan(
             occupancy, scan.pose, scan.stamp, scan.index, points if self.keep_clouds else None)])
@@ -120,3 +130,10 @@ class MapBuilder:
         self.map.save(self.map_path)
         self.saved_references = count
         return count
+
+
+def _submap_for(config: Config) -> Submap | None:
+    """The submap window of config's descriptor, None for single scans (or preset auto, whose
+    window is known only once derived)."""
+    window = SubmapWindow.for_descriptor(config.descriptor)
+    return Submap(window) if window.active and not config.auto else None

@@ -16,9 +16,11 @@ import numpy as np
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import DescribedScan, add_references
+from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.pipeline.distributed import run_units
 from mf_lpr_ros.pipeline.mapping import ReferencePlan, described_scan, plan_references
+from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 CHUNK_SCANS = 64
@@ -39,8 +41,9 @@ class SourceSpec:
 def describe_chunk(spec: SourceSpec, indices: np.ndarray, config: Config,
                    keep_clouds: bool) -> list[DescribedScan]:
     """The work unit: these scans of one source described as references."""
+    sequence = with_submaps(spec.open(), SubmapWindow.for_descriptor(config.descriptor))
     return [described_scan(scan, config.descriptor, keep_cloud=keep_clouds)
-            for scan in spec.open().iter_scans(indices)]
+            for scan in sequence.iter_scans(indices)]
 
 
 @dataclass

@@ -12,10 +12,12 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar, planar_error
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
+from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.core.verification import MatchVerifier, Verdict
 from mf_lpr_ros.datasets import Sequence
 from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.pipeline.mapping import describe_scan, prepared_points
+from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 
@@ -46,7 +48,8 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
                       progress: bool = True) -> list[QueryOutcome]:
     """Match every (selected) scan of a sequence against a map and verify each match as the
     localiser does (verification.MatchVerifier; the sequence's poses, when every scan has one,
-    serve as odometry). icp: refine every pose by ICP against the map's reference clouds."""
+    serve as odometry, and make each scan's submap when the map's descriptor has a window).
+    icp: refine every pose by ICP against the map's reference clouds."""
     if icp and not reference_map.has_clouds:
         raise ValueError("ICP refinement needs a map that keeps reference clouds "
                          "(build it with --keep-clouds)")
@@ -55,6 +58,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
     verifier = MatchVerifier(search, odometry_known=posed)
     outcomes = []
     selected = list(range(len(sequence))) if indices is None else list(indices)
+    sequence = with_submaps(sequence, SubmapWindow.for_descriptor(reference_map.params))
     for scan in progress_bar(sequence.iter_scans(selected), total=len(selected), desc="localise",
                              enabled=progress, unit="scan"):
         started = time.perf_counter()

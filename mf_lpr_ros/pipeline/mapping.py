@@ -17,8 +17,10 @@ from mf_lpr_ros.core.references import (
     descriptor_points,
     select_references,
 )
+from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 
@@ -76,9 +78,11 @@ def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
 
 def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
               progress: bool = True) -> ReferenceMap:
-    """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres."""
+    """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres
+    (each described from its submap when the descriptor asks for one)."""
     plan = plan_references(sequence, config)
     reference_map = plan.new_map()
+    sequence = with_submaps(sequence, SubmapWindow.for_descriptor(plan.config.descriptor))
     scans = progress_bar(sequence.iter_scans(plan.indices), total=len(plan.indices),
                          desc="build map", enabled=progress, unit="scan")
     add_references(reference_map, (described_scan(scan, plan.config.descriptor,

@@ -12,7 +12,9 @@ one (counted as dropped), so a slow search never builds a backlog.
 
 publish_mode on_request (the default in relocalise mode): `relocalisation` is published once
 per call of the ~/relocalise Trigger service, with the first scan after the call whose match
-passes verification, and the pose is returned in the reply; continuous (the default in
+passes verification, and the pose is returned in the reply (with a submap window: the first such
+scan whose window is complete, or at request_timeout_s the best partial one; the reply's
+described_from says which); continuous (the default in
 loop_closure mode): every accepted scan. Loop closures are published for every accepted scan
 in either mode.
 """
@@ -71,10 +73,13 @@ class _PendingScan:
 
 @dataclass
 class _Request:
-    """A relocalisation request: answered by the first scan received after `asked`."""
+    """A relocalisation request: answered by the first scan received after `asked` (whose
+    submap window is complete; partial keeps the last verified answer from an incomplete one,
+    given at the timeout)."""
 
     asked: float
     answer: Future = field(default_factory=Future)
+    partial: tuple | None = None
 
 
 class LocaliserLogic(LocaliserParameters):
@@ -144,6 +149,17 @@ class LocaliserLogic(LocaliserParameters):
             f"{self.mode}: {self.localiser.reference_count} references, voxel "
             f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}', "
             f"loop closures as {sorted(self.loop_closure_formats)}")
+        if self.localiser.submap is not None:
+            window = self.localiser.submap.window
+            if self.inputs.pose_source == NO_POSES:
+                self.get_logger().warning(
+                    f"the map was built with submaps (descriptor.submap_m = {window.window_m} m)"
+                    " but no pose_source gives odometry: scans are described alone, and recall"
+                    " will be lower; set pose_source")
+            else:
+                self.get_logger().info(
+                    f"describing each scan with the scans of its last {window.window_m} m of "
+                    f"travel (at most {window.max_scans} scans, {window.max_age_s} s)")
         if config.search.consistency_min_support > 0 and \
                 not self.localiser.verifier.consistency_active:
             self.get_logger().warning(
@@ -226,6 +242,7 @@ class LocaliserLogic(LocaliserParameters):
             self.map_frame_id = self.pose_frame_id
         for paired in self.synchroniser.ready(final=final):
             stamp, received = paired.extra
+            self.localiser.observe(paired.stamp, paired.points, paired.pose)
             if self.mode == "loop_closure":
                 self.localiser.add_reference(paired)
             self._offer(_PendingScan(stamp, paired.stamp, paired.points, paired.pose, received))
@@ -284,13 +301,17 @@ class LocaliserLogic(LocaliserParameters):
             return
         reference_pose = self.localiser.reference_pose(match.reference_index)
         world_T_base = relocalised_pose(match, reference_pose, self.inputs.extrinsic)
+        answer = self._answer(scan, result, world_T_base)
         with self._wake:
-            answering = [r for r in self._requests if r.asked <= scan.received]
-            self._requests = [r for r in self._requests if r.asked > scan.received]
+            asked = [r for r in self._requests if r.asked <= scan.received]
+            answering = asked if result.window_complete else []
+            self._requests = [r for r in self._requests if r not in answering]
+            for request in asked:
+                request.partial = (scan, match, world_T_base, answer)
         if self.publish_mode == "continuous" or answering:
             self._publish_pose(scan, match, world_T_base)
         for request in answering:
-            request.answer.set_result(self._answer(scan, match, world_T_base))
+            request.answer.set_result(answer)
         if self.loop_closure_pub is not None:
             self.loop_closure_pub.publish(loop_closure_message(
                 scan.stamp, match.reference_index, result.reference_stamp,
@@ -316,13 +337,16 @@ class LocaliserLogic(LocaliserParameters):
             [h.confidence for h in match.hypotheses]))
         self.counters["poses_published"] += 1
 
-    def _answer(self, scan: _PendingScan, match, world_T_base: np.ndarray) -> str:
-        """The Trigger reply's message: the published pose as JSON."""
+    def _answer(self, scan: _PendingScan, result, world_T_base: np.ndarray) -> str:
+        """The Trigger reply's message: the published pose as JSON, and what the scan was
+        described from (a single scan, or a complete or partial submap)."""
         x, y = (float(v) for v in world_T_base[:2, 3])
         yaw = float(np.arctan2(world_T_base[1, 0], world_T_base[0, 0]))
+        match = result.match
         return json.dumps({"frame_id": self.map_frame_id, "stamp": scan.seconds, "x": x, "y": y,
                            "yaw": yaw, "confidence": match.confidence,
-                           "covariance_xy_yaw": match.covariance.ravel().tolist()})
+                           "covariance_xy_yaw": match.covariance.ravel().tolist(),
+                           "described_from": result.described_from})
 
     async def _on_relocalise(self, request: Trigger.Request, response: Trigger.Response
                              ) -> Trigger.Response:
@@ -343,11 +367,17 @@ class LocaliserLogic(LocaliserParameters):
         return response
 
     def _expire(self, pending: _Request) -> None:
+        """At the timeout: the last verified answer from an incomplete window, else failure."""
         with self._wake:
             if pending not in self._requests:
                 return
             self._requests.remove(pending)
-        pending.answer.set_result(None)
+        if pending.partial is None:
+            pending.answer.set_result(None)
+            return
+        scan, match, world_T_base, answer = pending.partial
+        self._publish_pose(scan, match, world_T_base)
+        pending.answer.set_result(answer)
 
     def _publish_diagnostics(self) -> None:
         counters = dict(self.counters)

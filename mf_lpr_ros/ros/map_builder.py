@@ -186,7 +186,10 @@ class MapBuilderNode(LidarNode):
     def _voxel_text(self) -> str:
         if self.builder.waiting_for_auto:
             return f"from preset auto (derived from the first {SAMPLE_SCANS} scans)"
-        return f"{self.builder.config.descriptor.voxel_size} m"
+        descriptor = self.builder.config.descriptor
+        window = f", each reference from the scans of its last {descriptor.submap_m} m" \
+            if descriptor.submap_m > 0 else ""
+        return f"{descriptor.voxel_size} m{window}"
 
     def _report_auto(self) -> None:
         if self.builder.auto_choice is not None and not self._auto_reported:

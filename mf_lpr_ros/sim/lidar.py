@@ -1,4 +1,5 @@
-"""A spinning multi-beam LiDAR ray-cast against a scene (sim.scenes)."""
+"""A LiDAR ray-cast against a scene (sim.scenes): a spinning multi-beam one, or a
+non-repetitive one whose rays fall anywhere in its elevation band (a Livox Mid-360's pattern)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,12 @@ from mf_lpr_ros.sim.scenes import Scene
 
 @dataclass(frozen=True)
 class SensorModel:
-    """A spinning LiDAR: beam elevations, azimuth step, range noise, dropout, max range."""
+    """A LiDAR: beam elevations, azimuth step, range noise, dropout, max range.
+
+    non_repetitive: every sweep draws each ray's elevation anew, uniformly between the lowest
+    and the highest of elevations_deg (one ray per listed elevation and azimuth column), and
+    jitters its azimuth within its column, as a Livox Mid-360's rosette covers its band: no
+    rings, and no two sweeps alike."""
 
     name: str
     elevations_deg: tuple[float, ...]
@@ -21,12 +27,18 @@ class SensorModel:
     dropout: float = 0.05
     max_range_m: float = 100.0
     mount_height_m: float = 1.8
+    non_repetitive: bool = False
 
-    def directions(self) -> np.ndarray:
-        """(R, 3) unit ray directions in the sensor frame."""
+    def directions(self, rng: np.random.Generator | None = None) -> np.ndarray:
+        """(R, 3) unit ray directions in the sensor frame (rng draws a non-repetitive
+        sensor's sweep)."""
         azimuth = np.radians(np.arange(0.0, 360.0, self.azimuth_step_deg))
         elevation = np.radians(np.asarray(self.elevations_deg))
         az, el = np.meshgrid(azimuth, elevation)
+        if self.non_repetitive:
+            rng = rng or np.random.default_rng(0)
+            el = rng.uniform(elevation.min(), elevation.max(), el.shape)
+            az = az + rng.uniform(0.0, np.radians(self.azimuth_step_deg), az.shape)
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)],
                         -1).reshape(-1, 3)
 
@@ -38,6 +50,13 @@ HDL32 = SensorModel("HDL-32E", tuple(np.linspace(-30.67, 10.67, 32)), azimuth_st
                     max_range_m=80.0)
 
 
+# A Livox Mid-360 as a small robot carries it: 360 degrees x -7..+52 degrees, a few thousand
+# returns a sweep, mounted low, ranges to ~40 m.
+MID360 = SensorModel("Mid-360", tuple(np.linspace(-7.0, 52.0, 8)), azimuth_step_deg=1.0,
+                     range_noise_m=0.02, dropout=0.1, max_range_m=40.0, mount_height_m=0.5,
+                     non_repetitive=True)
+
+
 def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Generator
          ) -> np.ndarray:
     """One sweep from a levelled world_T_sensor pose: (N, 3) float32 hits in the sensor frame.
@@ -45,7 +64,8 @@ def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Gen
     Each primitive is only tested against the azimuth columns its bounding circle covers, so a
     sweep costs about (primitives x columns they span x beams), not (primitives x rays).
     """
-    directions = sensor.directions().reshape(len(sensor.elevations_deg), -1, 3) @ pose[:3, :3].T
+    directions = sensor.directions(rng).reshape(len(sensor.elevations_deg), -1, 3) \
+        @ pose[:3, :3].T
     n_columns = directions.shape[1]
     origin = pose[:3, 3]
     yaw = math.atan2(pose[1, 0], pose[0, 0])

@@ -14,7 +14,7 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.progress import progress_bar
-from mf_lpr_ros.sim.lidar import HDL32, VLP16, SensorModel, cast
+from mf_lpr_ros.sim.lidar import HDL32, MID360, VLP16, SensorModel, cast
 from mf_lpr_ros.sim.scenes import Scene, forest_scene, moved_objects, urban_scene
 
 
@@ -71,7 +71,14 @@ def forest_traversals(seed: int = 11, step_m: float = 0.5) -> Traversals:
     return Traversals(scene, scene, HDL32, drive(loop, step_m), second)
 
 
-WORLDS = {"urban": urban_traversals, "forest": forest_traversals}
+def sparse_traversals(seed: int = 13, step_m: float = 0.5) -> Traversals:
+    """The urban routes of another town, walked by a robot with a sparse Mid-360-like sensor
+    mounted low (sim.lidar.MID360): one sweep holds too little of a place, a submap does."""
+    urban = urban_traversals(seed, step_m)
+    return Traversals(urban.scene, urban.second_day, MID360, urban.first, urban.second)
+
+
+WORLDS = {"urban": urban_traversals, "forest": forest_traversals, "sparse": sparse_traversals}
 
 
 def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndarray, seed: int,
