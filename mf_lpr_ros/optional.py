@@ -39,6 +39,8 @@ DEPENDENCIES = {dependency.module: dependency for dependency in (
                        "distributed"),
     OptionalDependency("map_closures", "the MapClosures baseline (--methods map-closures)",
                        "map-closures", "baselines"),
+    OptionalDependency("lzf", "reading PCD files saved as DATA binary_compressed",
+                       "python-neo-lzf", "compressed_pcd"),
 )}
 
 

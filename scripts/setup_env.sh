@@ -42,6 +42,8 @@ fi
 quiet $pip install -q colcon-common-extensions || echo "setup: colcon not installed; the colcon build test will be skipped"
 # GTSAM: the pose graph of slam-eval and the pose_graph node (optional; both name it when missing).
 quiet $pip install -q gtsam || echo "setup: gtsam not installed; slam-eval and pose_graph will be unavailable"
+# LZF: PCD files saved as DATA binary_compressed (PCL's compressed writer, map editors).
+quiet $pip install -q python-neo-lzf || echo "setup: python-neo-lzf not installed; compressed PCD files will be refused"
 # Dask distributed: suite and build-map across processes or machines (--scheduler).
 quiet $pip install -q "dask[distributed]" || echo "setup: dask not installed; --scheduler will be unavailable"
 quiet $pip install -q --no-deps -e .

@@ -42,14 +42,15 @@ def register(commands: argparse._SubParsersAction) -> None:
     global_demo.set_defaults(handler=cmd_global_demo)
     demo = commands.add_parser(
         "demo", help="the whole system on simulated worlds, or on a real bag, through the nodes",
-        description="Simulates urban and forest worlds (two days each, written as ROS 2 bags under "
+        description="Simulates urban, forest and sparse-sensor worlds (two days each, written as "
+                    "ROS 2 bags under "
                     "--out and reused), streams day 1 through map_builder and day 2 through the "
                     "localiser over DDS, and prints recall, pose errors, rejection of unseen "
                     "places and latency, with a figure. With --data BAG: map_builder and the "
                     "localiser in loop_closure mode on one replay of a real bag.")
     demo.add_argument("--out", default="out/demo", help="folder for bags, maps and the figure")
-    demo.add_argument("--worlds", nargs="+", default=["urban", "forest"],
-                      choices=["urban", "forest"])
+    demo.add_argument("--worlds", nargs="+", default=["urban", "forest", "sparse"],
+                      choices=["urban", "forest", "sparse"])
     demo.add_argument("--stride", type=int, default=1,
                       help="keep every N-th simulated scan (a quicker demo)")
     demo.add_argument("--data", help="a real bag with PointCloud2 and poses (loop_closure mode)")

@@ -29,7 +29,13 @@ from typing import Any
 import numpy as np
 
 from mf_lpr_ros import __version__
-from mf_lpr_ros.config import descriptor_params_from_dict
+from mf_lpr_ros.core.map_header import (
+    ALIGN,
+    MAX_HEADER_BYTES,
+    ArrayEntry,
+    check_cloud_offsets,
+    parse_header,
+)
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
 from mf_lpr_ros.params import DescriptorParams
@@ -37,7 +43,7 @@ from mf_lpr_ros.params import DescriptorParams
 MAGIC = b"MFLPRMAP"
 FORMAT_VERSION = 1
 _PREAMBLE = struct.Struct("<8sIII")
-_ALIGN = 64
+_ALIGN = ALIGN
 _CRC_BLOCK = 1 << 24
 
 
@@ -220,23 +226,14 @@ class ReferenceMap:
         if zlib.crc32(header_bytes) != header_crc:
             raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
         try:
-            header = json.loads(header_bytes)
-            # Maps written before the disc crop existed were cropped square.
-            params = descriptor_params_from_dict({"crop": "square", **header["descriptor"]})
-            n_refs = int(header["n_references"])
-            table = {name: (int(entry["offset"]), np.dtype(entry["dtype"]), tuple(entry["shape"]),
-                            int(entry["crc32"])) for name, entry in header["arrays"].items()}
-        except (KeyError, TypeError, ValueError) as error:
-            raise MapFileError(f"{path}: invalid map header: {error}") from error
-        loaded = _map_arrays(path, table, size, verify)
-        expected_bits = params.size * params.size // 8
-        for name, shape in (("occupancy_bits", (n_refs, expected_bits)), ("poses", (n_refs, 4, 4)),
-                            ("stamps", (n_refs,)), ("source_indices", (n_refs,))):
-            if name not in loaded or loaded[name].shape != shape:
-                raise MapFileError(f"{path}: array {name!r} missing or of the wrong shape")
-        reference_map = cls(params, frame_id=header.get("frame_id", "map"),
-                            sensor_frame_id=header.get("sensor_frame_id", ""),
-                            metadata=header.get("metadata", {}))
+            header = parse_header(header_bytes, _PREAMBLE.size + len(header_bytes), size)
+            loaded = _map_arrays(path, header.arrays, verify)
+            if "cloud_offsets" in loaded:
+                check_cloud_offsets(loaded["cloud_offsets"], len(loaded["cloud_points"]))
+        except MapFileError as error:
+            raise MapFileError(f"{path}: {error}") from None
+        reference_map = cls(header.params, frame_id=header.frame_id,
+                            sensor_frame_id=header.sensor_frame_id, metadata=header.metadata)
         reference_map._occupancy_bits = loaded["occupancy_bits"]
         reference_map._poses = loaded["poses"]
         reference_map._stamps = loaded["stamps"]
@@ -264,6 +261,9 @@ def _read_header(path: Path) -> tuple[bytes, int, int]:
                     f"this build reads version {FORMAT_VERSION}")
             if version != FORMAT_VERSION:
                 raise MapFileError(f"{path}: unsupported map format version {version}")
+            if header_len > MAX_HEADER_BYTES:
+                raise MapFileError(f"{path}: invalid map header length {header_len} (a header "
+                                   f"holds at most {MAX_HEADER_BYTES} bytes)")
             header_bytes = handle.read(header_len)
     except OSError as error:
         raise MapFileError(f"cannot read map file {path}: {error}") from error
@@ -272,20 +272,18 @@ def _read_header(path: Path) -> tuple[bytes, int, int]:
     return header_bytes, header_crc, size
 
 
-def _map_arrays(path: Path, table: dict, size: int, verify: bool) -> dict[str, np.ndarray]:
-    """Every array of the header's table, memory-mapped and (verify) checksummed."""
+def _map_arrays(path: Path, table: dict[str, ArrayEntry], verify: bool
+                ) -> dict[str, np.ndarray]:
+    """Every array of the checked header's table, memory-mapped and (verify) checksummed."""
     loaded: dict[str, np.ndarray] = {}
-    for name, (offset, dtype, shape, crc) in table.items():
-        n_bytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-        if offset + n_bytes > size:
-            raise MapFileError(f"{path}: truncated map file (array {name!r} needs bytes up to "
-                               f"{offset + n_bytes}, file has {size})")
-        if n_bytes == 0:
-            array = np.zeros(shape, dtype=dtype)
+    for name, entry in table.items():
+        if entry.nbytes == 0:
+            array = np.zeros(entry.shape, dtype=entry.dtype)
         else:
-            array = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
-        if verify and _crc32(array) != crc:
-            raise MapFileError(f"{path}: corrupt map file (checksum mismatch in {name!r})")
+            array = np.memmap(path, dtype=entry.dtype, mode="r", offset=entry.offset,
+                              shape=entry.shape)
+        if verify and _crc32(array) != entry.crc32:
+            raise MapFileError(f"corrupt map file (checksum mismatch in {name!r})")
         loaded[name] = array
     return loaded
 

@@ -163,11 +163,10 @@ class MatchedFilterIndex:
                                      self.params.pool, self._query_covered(self.global_angles))
         operator = self.bank.prepare_queries(low_queries)
         prepared = time.perf_counter()
-        top_k = self.search.prefilter_top_k
         volume = None
-        if self.prefilter is not None and n_refs > top_k:
+        if self.prefilter is not None and n_refs > self.search.prefilter_top_k:
             # global_angles[0] is 0: the unrotated query.
-            searched = self._expanded(self.prefilter.top(low_queries[0], top_k, n_refs), n_refs)
+            searched = self._candidates(low_queries[0], n_refs, self.search.prefilter_top_k)
             prefilter_done = time.perf_counter()
             scores, volume = self.bank.best_of_subset(operator, searched, self.search.chunk_size)
         else:
@@ -274,6 +273,23 @@ class MatchedFilterIndex:
         if not elsewhere.any():
             return 0.0
         return float(np.clip(1.0 - scores[elsewhere].max() / own[0], 0.0, 1.0))
+
+    def candidates(self, occupancy: np.ndarray, top_k: int, n_active: int | None = None
+                   ) -> np.ndarray:
+        """The references the exact global stage would search for this query with
+        prefilter_top_k = top_k: the prefilter's top_k and their map neighbours (every
+        reference when top_k is 0 or covers them all). For measuring what the candidate stage
+        loses (benchmarks/bench_candidates.py)."""
+        n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
+        if self.prefilter is None or top_k <= 0 or n_refs <= top_k:
+            return np.arange(n_refs)
+        low = pooled_weights(rotate_occupancy(occupancy, self.global_angles[:1]),
+                             self.params.unoccupied_weight, self.params.pool,
+                             self._query_covered(self.global_angles[:1]))
+        return self._candidates(low[0], n_refs, top_k)
+
+    def _candidates(self, low_query: np.ndarray, n_refs: int, top_k: int) -> np.ndarray:
+        return self._expanded(self.prefilter.top(low_query, top_k, n_refs), n_refs)
 
     def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
         """searched, then the references near its leaders that it lacks (prefilter_expand_m)."""

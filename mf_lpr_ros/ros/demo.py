@@ -35,8 +35,12 @@ from mf_lpr_ros.ros.replay import replay_bag
 from mf_lpr_ros.sim.simulator import WORLDS, write_bag
 
 # Bump when the simulator's output changes, so cached bags are rebuilt.
-SIMULATION_VERSION = 1
-WORLD_PRESETS = {"urban": "kitti", "forest": "default"}
+SIMULATION_VERSION = 2
+WORLD_PRESETS = {"urban": "kitti", "forest": "default", "sparse": "auto"}
+# Worlds whose localiser also gets the day's odometry (pose_source odom): the sparse sensor's
+# map is built from submaps (preset auto chooses them), and its queries need the odometry to
+# make theirs. The dense worlds show single-scan relocalisation without odometry.
+WORLDS_WITH_ODOMETRY = {"sparse"}
 SEEN_WITHIN_M = 5.0        # a query this close to a reference should be relocalised
 UNSEEN_BEYOND_M = 15.0     # a query this far from every reference must be rejected
 CORRECT_WITHIN_M, CORRECT_WITHIN_DEG = 2.0, 5.0
@@ -112,13 +116,15 @@ def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int
                    and builder.synchroniser.pending == 0, 30)
     graph.stop(builder)
 
+    odometry = name in WORLDS_WITH_ODOMETRY
     localiser = graph.start(LocaliserNode, preset=preset, map_path=str(map_path),
                             publish_mode="continuous",
+                            pose_source="odom" if odometry else "none",
                             **{"search.verify_fitness": VERIFY_FITNESS,
                                "search.min_distinctiveness": DEMO_MIN_DISTINCTIVENESS})
     poses = graph.collect(PoseWithCovarianceStamped, "relocalisation")
     replay_bag(second, rate=1.0, node=graph.node, wait_for_subscribers=1, progress=progress,
-               topics=["/points"])
+               topics=["/points", "/odom"] if odometry else ["/points"])
     graph.wait_for(localiser.is_idle, 30)
     time.sleep(0.3)
     latency = np.array(localiser.latencies_ms)

@@ -61,8 +61,11 @@ def test_pcd_ascii_and_binary(tmp_path):
     with pytest.raises(DatasetError, match="truncated"):
         read_pcd(tmp_path / "c.pcd")
     (tmp_path / "d.pcd").write_bytes(header.format("binary_compressed").encode())
-    with pytest.raises(DatasetError, match="not supported"):
+    with pytest.raises(DatasetError, match="no sizes after DATA"):
         read_pcd(tmp_path / "d.pcd")
+    (tmp_path / "e.pcd").write_bytes(header.format("lzma").encode())
+    with pytest.raises(DatasetError, match="encoding 'lzma' is not one of"):
+        read_pcd(tmp_path / "e.pcd")
 
 
 def test_pose_interpolation_and_gaps():
