@@ -54,6 +54,10 @@ def read_pcd(path: str | Path) -> np.ndarray:
         if len(raw) - header.data_start < needed:
             raise DatasetError(f"{path}: truncated PCD ({len(raw) - header.data_start} data "
                                f"bytes, {needed} expected)")
+        if len(raw) - header.data_start > needed:
+            # The header does not describe the data: reading it would misplace every field.
+            raise DatasetError(f"{path}: {len(raw) - header.data_start} bytes of point data, "
+                               f"the header describes {needed}")
         records = np.frombuffer(raw, dtype=header.record_dtype, count=header.n_points,
                                 offset=header.data_start)
         return np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float32)
@@ -153,6 +157,9 @@ def _compressed_points(raw: bytes, header: PcdHeader, path: Path) -> np.ndarray:
     if compressed > len(payload):
         raise DatasetError(f"{path}: truncated compressed PCD ({len(payload)} bytes, "
                            f"{compressed} claimed)")
+    if compressed < len(payload):
+        raise DatasetError(f"{path}: {len(payload)} bytes of compressed data, the header "
+                           f"claims {compressed}")
     if expected == 0:
         return np.zeros((0, 3), dtype=np.float32)
     lzf = require("lzf")
