@@ -94,6 +94,12 @@ class Submap:
     def __len__(self) -> int:
         return len(self._kept)
 
+    @property
+    def nbytes(self) -> int:
+        """The memory the kept scans' points take."""
+        with self._lock:
+            return sum(kept.world_points.nbytes for kept in self._kept)
+
     def reset(self) -> None:
         with self._lock:
             self._clear()
