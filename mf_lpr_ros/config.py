@@ -46,6 +46,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     "oxford": {"descriptor": {"voxel_size": 1.3}},
     "wildplaces": {"descriptor": {"voxel_size": 0.3, "z_min": 1.0, "z_max": 3.0,
                                   "density_threshold": 2.0}},
+    # Livox sensors (Mid-360, Avia, ...): sparse or narrow sweeps, described from submaps of the
+    # last 3 m of travel (core/submap.py; the window auto gives such sensors, chosen on the
+    # tuning sets: docs/RESULTS.md).
+    "livox": {"descriptor": {"submap_m": 3.0}},
     # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
     # Levelled with the pose's roll/pitch: a handheld sensor tilts 10 deg typically, 37 at worst.
     "handheld": {"descriptor": {"voxel_size": 0.3, "level": True},

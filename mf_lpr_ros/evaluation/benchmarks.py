@@ -107,7 +107,7 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
           "Mid-360 campus loop's own loop closures (references >= 40 s older, 5 m) and the Livox "
           "Avia site's session2 against a session1 map (3 m), each with preset auto and with the "
           "named preset chosen for the sensor beforehand (default for the Mid-360, handheld for "
-          "the handheld Avia)",
+          "the handheld Avia) and with livox (submaps) for both",
           (Rule("single", "auto", Protocol(5.0, exclude_recent_s=40.0),
                 ("holdout/campus_mid360_loop",), by_preset=True),
            Rule("single", "default", Protocol(5.0, exclude_recent_s=40.0),
@@ -115,6 +115,10 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
            Rule("cross", "auto", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
                 ("holdout/hku_avia_2sessions/session2",), by_preset=True),
            Rule("cross", "handheld", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
+                ("holdout/hku_avia_2sessions/session2",), by_preset=True),
+           Rule("single", "livox", Protocol(5.0, exclude_recent_s=40.0),
+                ("holdout/campus_mid360_loop",), by_preset=True),
+           Rule("cross", "livox", Protocol(3.0), ("holdout/hku_avia_2sessions/session1",),
                 ("holdout/hku_avia_2sessions/session2",), by_preset=True))),
     Suite("real-tuning",
           "The real tuning sets with preset auto beside the named preset: BALM handheld "
@@ -132,7 +136,7 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
           "the mean rises and no set drops more than a point; docs/RESULTS.md keeps each "
           "change's table): KITTI 00 and 00_rot on BEVPlace's protocol, KITTI 00 every-frame "
           "loop closures (kitti, 5 m, 100 frames apart), BALM (handheld and auto, 3 m, 50 "
-          "frames), the HKU Avia keyframes (default and auto, 5 m, 50 frames) and, as "
+          "frames), the HKU Avia keyframes (default, auto and livox, 5 m, 50 frames) and, as "
           "validation, KITTI 00 cut elsewhere (database frames 0-1499, queries 1700-4540)",
           _BEVPLACE_TUNING[0] + (
               Rule("single", "kitti", Protocol(5.0, exclude_recent_frames=100),
@@ -144,6 +148,8 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
               Rule("single", "default", Protocol(5.0, exclude_recent_frames=50),
                    ("hku_mb_livox",), by_preset=True),
               Rule("single", "auto", Protocol(5.0, exclude_recent_frames=50),
+                   ("hku_mb_livox",), by_preset=True),
+              Rule("single", "livox", Protocol(5.0, exclude_recent_frames=50),
                    ("hku_mb_livox",), by_preset=True),
               Rule("single", "kitti", _KITTI00_VALIDATION, ("kitti_bev/00",),
                    label="validation")),
