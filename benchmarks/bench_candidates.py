@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_search import print_table
 from tqdm import tqdm
 
 from mf_lpr_ros.config import preset
@@ -100,11 +101,7 @@ def main() -> None:
         rows += measure(Path(args.data) / folder, args.every, args.top_k)
     header = ("set", "top_k", "queries", "exact match in candidates", "recall@1",
               "same match as exact", "references correlated", "ms/query")
-    print("| " + " | ".join(header) + " |")
-    print("|---" * len(header) + "|")
-    for row in rows:
-        print("| " + " | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row)
-              + " |")
+    print_table(header, rows)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_search import print_table
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets import Sequence, open_source
@@ -79,11 +80,7 @@ def main() -> None:
     rows = [measure(Path(args.data) / args.source, window, args.every) for window in args.windows]
     header = ("submap_m", "refs", "queries", "observe ms p50", "observe ms p95",
               "localise ms p50", "localise ms p95", "descriptor ms", "points", "window MB")
-    print("| " + " | ".join(header) + " |")
-    print("|---" * len(header) + "|")
-    for row in rows:
-        print("| " + " | ".join(f"{v:.2f}" if isinstance(v, float) else str(v) for v in row)
-              + " |")
+    print_table(header, rows)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from test_ros_nodes import errors, planar_of_message
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.io.messages import stamp_to_seconds
 from mf_lpr_ros.ros.localiser import LocaliserNode
-from mf_lpr_ros.ros.messages import points_to_pointcloud2, seconds_to_stamp
+from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 
 # nav2 AMCL's /initialpose subscription: reliable, volatile.
 AMCL_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
@@ -30,11 +30,11 @@ LATE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
 
 
 class ScanStream:
-    """Publishes the query scans round and round at ~10 Hz until stopped; remembers the truth
-    of each stamp."""
+    """Publishes the query scans round and round at ~10 Hz until stopped (each after its
+    odometry, when an odometry publisher is given); remembers the truth of each stamp."""
 
-    def __init__(self, publisher, queries, first_stamp: float = 500.0) -> None:
-        self.publisher, self.queries = publisher, queries
+    def __init__(self, publisher, queries, first_stamp: float = 500.0, odometry=None) -> None:
+        self.publisher, self.queries, self.odometry = publisher, queries, odometry
         self.truth: dict[float, np.ndarray] = {}
         self._stamp = first_stamp
         self._stop = threading.Event()
@@ -45,8 +45,10 @@ class ScanStream:
         while not self._stop.wait(0.1):
             points, pose = self.queries[index % len(self.queries)]
             self.truth[round(self._stamp, 3)] = planar(pose)
-            self.publisher.publish(points_to_pointcloud2(points, seconds_to_stamp(self._stamp),
-                                                         "velodyne"))
+            stamp = seconds_to_stamp(self._stamp)
+            if self.odometry is not None:
+                self.odometry.publish(odometry_message(stamp, "odom", "velodyne", pose))
+            self.publisher.publish(points_to_pointcloud2(points, stamp, "velodyne"))
             self._stamp += 0.1
             index += 1
 
