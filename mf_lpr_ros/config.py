@@ -92,8 +92,11 @@ def load_config(path: str | Path, base: Config | None = None) -> Config:
     where other node parameters are ignored)."""
     try:
         values = yaml.safe_load(Path(path).read_text()) or {}
-    except (OSError, yaml.YAMLError) as error:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
         raise ConfigError(f"cannot read config file {path}: {error}") from error
+    except RecursionError:
+        raise ConfigError(f"config file {path} is nested too deeply to be a configuration") \
+            from None
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must hold a mapping, not {type(values).__name__}")
     ros_sections = [v["ros__parameters"] for v in values.values()

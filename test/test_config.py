@@ -67,3 +67,17 @@ def test_presets_command_writes_what_the_test_compares(tmp_path):
     assert main(["presets", "--write", str(tmp_path)]) == 0
     assert {p.name: p.read_text() for p in tmp_path.glob("*.yaml")} == \
         {p.name: p.read_text() for p in REPO_CONFIGS}
+
+
+def test_hostile_config_files_are_refused_by_name(tmp_path):
+    cases = {"deep.yaml": "descriptor: " + "[" * 5000 + "]" * 5000,
+             "binary.yaml": b"\xff\xfe\x00descriptor",
+             "list.yaml": "- 1\n- 2\n"}
+    for name, text in cases.items():
+        path = tmp_path / name
+        if isinstance(text, bytes):
+            path.write_bytes(text)
+        else:
+            path.write_text(text)
+        with pytest.raises(ConfigError, match=name):
+            load_config(path)
