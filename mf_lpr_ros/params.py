@@ -167,13 +167,6 @@ class SearchParams:
         with it: the pose one implies, carried along the odometry, lies within
         consistency_tolerance_m and consistency_tolerance_deg of the other's. A false match is
         a one-off; a true revisit repeats along the path. 0 = off.
-    consistency_candidate_confidence: a match that fails the other tests but reaches this
-        confidence still counts as an earlier candidate (it vouches, it is not published).
-        Measured on KITTI 00 every-frame closures: wrong matches' confidence is 0.13-0.34
-        (5th-95th percentile), true ones' 0.42-0.73; with 0.25 published closures rose from
-        763 to 779, 0 false. Letting long agreeing runs publish weak matches was tried and
-        refused: runs of 8 agreeing weak matches still published 6 false closures there
-        (matches sliding along a straight road agree with the odometry).
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too
@@ -203,7 +196,6 @@ class SearchParams:
     consistency_min_separation_m: float = 1.0
     consistency_tolerance_m: float = 1.5
     consistency_tolerance_deg: float = 5.0
-    consistency_candidate_confidence: float = 0.25
     rerank_margin: float = 0.0
     rerank_agreement_m: float = 2.0
 
@@ -237,9 +229,6 @@ class SearchParams:
                  self.min_distinctiveness)
         require_parameter(self.consistency_min_support >= 0, "consistency_min_support", ">= 0",
                  self.consistency_min_support)
-        require_parameter(0.0 <= self.consistency_candidate_confidence <= 1.0,
-                          "consistency_candidate_confidence", "in [0, 1]",
-                          self.consistency_candidate_confidence)
         for name in ("consistency_window_m", "consistency_tolerance_m",
                      "consistency_tolerance_deg"):
             require_parameter(getattr(self, name) > 0, name, "> 0", getattr(self, name))

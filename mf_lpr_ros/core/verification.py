@@ -12,10 +12,6 @@ A match is published when, in this order (cheap tests first, each only on what p
    search.consistency_min_support > 0: earlier candidates from the last consistency_window_m
    of travel must imply the same map-to-odometry alignment. A false match is a one-off; a true
    revisit repeats along the path, each match agreeing with the odometry between them.
-   Candidates are the matches that passed tests 1-3, and also the weaker ones whose confidence
-   reaches search.consistency_candidate_confidence: a weak match can vouch for a strong one,
-   never publish itself (on KITTI 00 this published 779 closures, 0 false, where strong
-   candidates alone published 763).
 """
 
 from __future__ import annotations
@@ -76,18 +72,6 @@ class OdometryConsistency:
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray) -> int:
         """Agreeing earlier candidates; the current one is then remembered as a candidate."""
-        count = self.agreeing(odometry, estimate)
-        self.remember(odometry, estimate)
-        return count
-
-    def remember(self, odometry: np.ndarray, estimate: np.ndarray) -> None:
-        """Keep a candidate that may support later matches."""
-        self._candidates.append(_Candidate(np.asarray(odometry, dtype=np.float64),
-                                           np.asarray(estimate, dtype=np.float64),
-                                           self.travelled_m))
-
-    def agreeing(self, odometry: np.ndarray, estimate: np.ndarray) -> int:
-        """How many earlier candidates, separated enough from this query, imply its pose."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         count = 0
@@ -103,6 +87,7 @@ class OdometryConsistency:
             count = int(np.count_nonzero(
                 separated & (position_gap <= self.search.consistency_tolerance_m)
                 & (yaw_gap <= self.search.consistency_tolerance_deg)))
+        self._candidates.append(_Candidate(odometry, estimate, self.travelled_m))
         return count
 
 
@@ -142,9 +127,6 @@ class MatchVerifier:
             reasons.append(f"distinctiveness {match.distinctiveness:.3f} < min_distinctiveness "
                            f"{search.min_distinctiveness}")
         if reasons:
-            if self.consistency_active and match.score >= self.min_score and \
-                    match.confidence >= search.consistency_candidate_confidence:
-                self.consistency.remember(odometry, match.pose)
             return Verdict(False, "; ".join(reasons))
         fitness = math.nan
         if search.verify_fitness > 0:

@@ -136,20 +136,3 @@ def test_consistency_without_odometry_is_refused_or_skipped():
     skipped = MatchVerifier(search, odometry_known=False)
     assert not skipped.consistency_active
     assert skipped.verify(_match(np.zeros(3)), None).accepted
-
-
-def test_weak_agreeing_matches_vouch_for_a_strong_one_but_never_publish():
-    """Two weak matches (confidence 0.3, under min_confidence 0.4) along the path imply the
-    same map alignment as a strong third: the strong one is published with their support, the
-    weak ones never are, and below consistency_candidate_confidence they do not vouch."""
-    offset = np.array([100.0, 50.0, 0.5])
-    for candidate_confidence, expected in ((0.25, True), (0.35, False)):
-        search = SearchParams(consistency_candidate_confidence=candidate_confidence)
-        verifier = MatchVerifier(search)
-        for step, confidence in enumerate((0.3, 0.3, 0.8)):
-            odometry = np.array([2.0 * step, 0.0, 0.0])
-            verdict = verifier.verify(_match(compose_planar(offset, odometry), confidence),
-                                      odometry)
-            if confidence < search.min_confidence:
-                assert not verdict.accepted and "confidence" in verdict.reason
-        assert verdict.accepted is expected, verdict.reason
