@@ -37,10 +37,12 @@ def test_kitti00_rotated_queries(data_dir):
 def test_balm_handheld_loop_closure(data_dir):
     report = evaluate(open_source(data_dir / "balm_realworld"), preset("handheld"), 3.0,
                       exclude_recent_frames=50, progress=False)
-    # Measured: 7 positives, recall@1 1.0 (0.571 before nearest-place re-ranking), corrected
-    # 1.0, RTE 0.06 m, RRE 0.06 deg.
+    # Measured: 7 positives, corrected recall@1 1.0, RTE 0.06 m, RRE 0.06 deg; retrieval recall
+    # 0.571: with references 1 m apart the best-scoring one is often not the nearest (re-ranking,
+    # which reported the nearest, is off by default since it lost 5.5 points on held-out KITTI
+    # 02; docs/RESULTS.md). The pose, which is what a user gets, is within 3 m on all 7.
     assert report["n_queries"] == 7
-    assert report["recall_at_1"] >= 0.85
+    assert report["recall_at_1"] >= 0.5
     assert report["recall_at_1_corrected"] >= 0.85
     assert report["rte_mean_m"] < 0.2
     assert report["rre_mean_deg"] < 1.0
