@@ -113,7 +113,7 @@ def test_crafted_headers_load_the_original_or_are_refused(saved_map, tmp_path, e
 
 
 @pytest.mark.slow
-@settings(max_examples=3000, deadline=None,
+@settings(max_examples=1000, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(edits=header_edits())
 def test_crafted_headers_many_more(saved_map, tmp_path, edits):

@@ -16,7 +16,7 @@ from mf_lpr_ros.io.ply import read_ply
 
 FUZZ = settings(max_examples=120, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
-MANY = settings(max_examples=2000, deadline=None,
+MANY = settings(max_examples=800, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
