@@ -108,7 +108,8 @@ class MapBuilder:
         if not self._spacing.far_enough(position):
             return None
         params = self.config.descriptor
-        points = scan.points if self.submap is None else self.submap.points_at(scan.stamp).points
+        points = self.submap.points_at(scan.stamp).points \
+            if self.submap is not None and self.submap.holds(scan.stamp) else scan.points
         points = descriptor_points(points, scan.pose, params)
         occupancy = describe_observation(params, reference=True, stamp=scan.stamp, points=points)
         index = add_references(self.map, [DescribedScan(
