@@ -9,16 +9,15 @@ The public API, ROS-free (rclpy is imported by mf_lpr_ros.ros only):
 README.md, section "Architecture", maps the subpackages.
 """
 
-__version__ = "0.1.0"
-
-from mf_lpr_ros import errors  # noqa: E402
-from mf_lpr_ros.config import Config, load_config, preset  # noqa: E402
-from mf_lpr_ros.core.map_store import ReferenceMap  # noqa: E402
-from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult  # noqa: E402
-from mf_lpr_ros.datasets import open_source  # noqa: E402
-from mf_lpr_ros.live.localiser import Localiser  # noqa: E402
-from mf_lpr_ros.live.map_builder import MapBuilder  # noqa: E402
-from mf_lpr_ros.pipeline.mapping import build_map  # noqa: E402
+from mf_lpr_ros import errors
+from mf_lpr_ros.config import Config, load_config, preset
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
+from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.live.localiser import Localiser
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.pipeline.mapping import build_map
+from mf_lpr_ros.version import __version__
 
 __all__ = ["Config", "load_config", "preset", "ReferenceMap", "MatchedFilterIndex", "MatchResult",
            "Localiser", "MapBuilder", "build_map", "open_source", "errors", "__version__"]

@@ -15,15 +15,23 @@ import numpy as np
 import yaml
 
 from mf_lpr_ros.errors import ConfigError
-from mf_lpr_ros.params import DescriptorParams, SearchParams, require_parameter
+from mf_lpr_ros.params import (
+    DescriptorParams,
+    SearchParams,
+    field_descriptions,
+    require_parameter,
+)
 
 
 @dataclass(frozen=True)
 class Config:
     """Everything the pipeline needs: descriptor, search and map-building parameters.
 
+    spacing_m: metres of travel between references when a map is built from scans (the
+        paper's 2 m; 0 = every scan a reference).
     auto: the descriptor is still to be derived from the scans (preset "auto",
-    mf_lpr_ros/auto_params.py); whatever builds a map resolves it from its first scans.
+        mf_lpr_ros/core/auto_params.py); whatever builds a map resolves it from its first
+        scans.
     """
 
     descriptor: DescriptorParams = field(default_factory=DescriptorParams)
@@ -121,6 +129,16 @@ def flat_parameters(config: Config) -> dict[str, Any]:
     return flat
 
 
+def parameter_descriptions() -> dict[str, str]:
+    """What each flat parameter (flat_parameters' names) means, from the classes' docstrings."""
+    descriptions = {f"{section}.{name}": text
+                    for section, params_class in (("descriptor", DescriptorParams),
+                                                  ("search", SearchParams))
+                    for name, text in field_descriptions(params_class).items()}
+    descriptions["spacing_m"] = field_descriptions(Config)["spacing_m"]
+    return descriptions
+
+
 def config_from_flat(values: Mapping[str, Any], base: Config | None = None) -> Config:
     """Inverse of flat_parameters (plus an optional 'preset'); unknown names are refused."""
     nested: dict[str, Any] = {}
@@ -140,7 +158,7 @@ def preset_file_text(name: str) -> str:
              "# A ROS 2 parameter file for every mf_lpr_ros node:",
              f"#   ros2 run mf_lpr_ros localiser --ros-args --params-file config/{name}.yaml",
              f"# and for the offline tools: mf-lpr ... --config config/{name}.yaml",
-             "# Meanings: mf_lpr_ros/config.py and README.md; .inf / -.inf mean unbounded.",
+             "# Meanings: docs/PARAMETERS.md; .inf / -.inf mean unbounded.",
              "/**:", "  ros__parameters:", f"    preset: {name}"]
     for section in ("descriptor", "search"):
         lines.append(f"    {section}:")

@@ -12,6 +12,10 @@ class ConfigError(ValueError):
     """A parameter value is invalid; the message names the parameter."""
 
 
+class ParameterFault(ConfigError):
+    """A node parameter, or a combination of them, is refused at start-up; the message names it."""
+
+
 class DatasetError(ValueError):
     """A dataset folder or file is not in a layout we can read; the message says what is wrong."""
 

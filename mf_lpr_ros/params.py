@@ -6,6 +6,7 @@ mf_lpr_ros.config groups them with the map spacing into a Config and loads them 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -131,13 +132,13 @@ class SearchParams:
     score_normalisation: "raw" (paper) ranks by the dot product; "cosine" divides it by the
         reference descriptor's norm so dense references are not favoured.
     min_confidence: matches below this confidence are rejected (the first test of
-        mf_lpr_ros/verification.py). 0.4 lies between the thresholds that maximise F1 on the
+        mf_lpr_ros/core/verification.py). 0.4 lies between the thresholds that maximise F1 on the
         tuning sets (KITTI 00 BEV: 0.47, BALM handheld: 0.35); the handheld preset uses its
         own. Alone it cannot reach zero false closures on KITTI 00 short of 0.5 (recall 0.70);
         with distinctiveness and odometry consistency it does at 0.4 (recall 0.93).
     chunk_size: references processed per block in the global stage (memory vs. speed).
     prefilter_top_k: the global stage correlates only the k references that a rotation- and
-        translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/prefilter.py);
+        translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/core/prefilter.py);
         0 searches every reference exhaustively (exact mode). With 64 (and the expansion
         below), the match equals the exhaustive search's on every revisit query of KITTI 00
         BEV (and 00_rot), in ~1/4 of the time at 1500 references and ~1/100 at 20000
@@ -160,8 +161,10 @@ class SearchParams:
     distinct_radius_m: references farther than this from the match count as another place
         when MatchResult.distinctiveness compares the match with the best other place.
     min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).
-    consistency_min_support: odometry consistency (mf_lpr_ros/verification.py). When > 0 and
-        the scans' odometry is known, a match is accepted only when at least this many earlier
+    consistency_min_support, consistency_window_m, consistency_min_separation_m,
+    consistency_tolerance_m, consistency_tolerance_deg: odometry consistency
+        (mf_lpr_ros/core/verification.py). When consistency_min_support > 0 and the scans'
+        odometry is known, a match is accepted only when at least this many earlier
         candidate matches (those passing the other tests) from the last consistency_window_m of
         travel, each from a query at least consistency_min_separation_m from this one, agree
         with it: the pose one implies, carried along the odometry, lies within
@@ -239,6 +242,35 @@ class SearchParams:
         require_parameter(self.consistency_min_separation_m >= 0, "consistency_min_separation_m",
                           ">= 0",
                  self.consistency_min_separation_m)
+
+
+_FIELD_ENTRY = re.compile(r"^    ([a-z_]+(?:, [a-z_]+)*): (.*)$")
+_FIELD_NAMES_CONTINUED = re.compile(r"^    ([a-z_]+(?:, [a-z_]+)*),$")
+
+
+def field_descriptions(params_class: type) -> dict[str, str]:
+    """Each field's description as its class docstring gives it ("    name[, name]: text",
+    continued on deeper-indented lines): one home for the meaning of a parameter, read by the
+    nodes' parameter descriptors and docs/PARAMETERS.md."""
+    descriptions: dict[str, str] = {}
+    names: list[str] = []
+    pending: list[str] = []
+    for line in (params_class.__doc__ or "").splitlines():
+        entry = _FIELD_ENTRY.match(line)
+        continued = _FIELD_NAMES_CONTINUED.match(line)
+        if continued:
+            pending += continued.group(1).split(", ")
+            names = []
+        elif entry:
+            names, pending = pending + entry.group(1).split(", "), []
+            for name in names:
+                descriptions[name] = entry.group(2)
+        elif names and line.startswith("        "):
+            for name in names:
+                descriptions[name] += " " + line.strip()
+        else:
+            names = []
+    return descriptions
 
 
 def require_parameter(ok: bool, name: str, expectation: str, value: Any) -> None:

@@ -9,9 +9,11 @@ from pathlib import Path
 import mf_lpr_ros
 
 PACKAGE = Path(mf_lpr_ros.__file__).parent
-# Lowest first: a module may import from its own layer and the layers before it.
-LAYERS = ["errors", "params", "config", "optional", "progress", "core", "io", "datasets", "live",
-          "pipeline", "evaluation", "sim", "ros", "cli"]
+REPOSITORY = PACKAGE.parent
+# Lowest first: a module may import from its own layer and the layers before it. The package
+# itself ("mf_lpr_ros", its __init__: the public API) is the top, so no module may import it.
+LAYERS = ["version", "errors", "params", "config", "optional", "progress", "core", "io",
+          "datasets", "live", "pipeline", "evaluation", "sim", "ros", "cli", ""]
 
 
 def _layer(module: str) -> int:
@@ -26,12 +28,17 @@ def _imports(path: Path) -> set[str]:
             found.add(node.module)
         elif isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
-    return {name for name in found if name.startswith("mf_lpr_ros.")}
+    return {name for name in found if name.split(".")[0] == "mf_lpr_ros"}
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    return ".".join(("mf_lpr_ros",) + (parts[:-1] if parts[-1] == "__init__" else parts))
 
 
 def _modules() -> dict[str, Path]:
-    return {".".join(("mf_lpr_ros",) + path.relative_to(PACKAGE).with_suffix("").parts): path
-            for path in PACKAGE.rglob("*.py") if path.name != "__init__.py"}
+    """Every module of the package, __init__ files included (a package is named as itself)."""
+    return {_module_name(path): path for path in PACKAGE.rglob("*.py")}
 
 
 def test_every_module_belongs_to_a_layer():
@@ -43,6 +50,18 @@ def test_imports_only_run_down_the_layers():
     upward = [f"{module} imports {imported}" for module, path in _modules().items()
               for imported in _imports(path) if _layer(imported) > _layer(module)]
     assert not upward, upward
+
+
+def test_the_layer_rule_catches_an_import_of_the_package_itself():
+    assert _layer("mf_lpr_ros") > max(_layer(module) for module in _modules()
+                                      if module != "mf_lpr_ros")
+    assert _layer("mf_lpr_ros.cli") < _layer("mf_lpr_ros")
+
+
+def test_version_agrees_with_setup_and_package_xml():
+    version = mf_lpr_ros.__version__
+    assert f'version="{version}"' in (REPOSITORY / "setup.py").read_text()
+    assert f"<version>{version}</version>" in (REPOSITORY / "package.xml").read_text()
 
 
 def test_relative_imports_are_not_used():

@@ -1,7 +1,7 @@
 """mf-lpr: offline tools for building maps, localising, evaluating and a self-contained demo.
 
 Run `mf-lpr SUBCOMMAND --help` for each tool's options. One module per command group:
-cli.maps, cli.localise, cli.evaluate, cli.demos, cli.presets.
+cli.maps, cli.localise, cli.evaluate, cli.demos, cli.presets, cli.reference_docs.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mf_lpr_ros.cli import demos, evaluate, localise, maps, presets
+from mf_lpr_ros.cli import demos, evaluate, localise, maps, presets, reference_docs
 from mf_lpr_ros.errors import (
     ConfigError,
     DatasetError,
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mf-lpr", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
-    for group in (maps, localise, evaluate, demos, presets):
+    for group in (maps, localise, evaluate, demos, presets, reference_docs):
         group.register(commands)
     return parser
 

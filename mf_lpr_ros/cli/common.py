@@ -7,13 +7,11 @@ import contextlib
 from dataclasses import replace
 
 from mf_lpr_ros.config import PRESET_NAMES, Config, load_config, preset
+from mf_lpr_ros.datasets import LOADERS
 from mf_lpr_ros.evaluation.methods import METHODS
 
 METHOD_KEYS = sorted(METHODS)
-SOURCE_HELP = ("a KITTI folder (velodyne/*.bin + poses.txt), a PCD/PLY folder (+ poses_tum.txt "
-               "or poses.txt), an NCLT session, an Oxford Radar RobotCar session, a Wild-Places "
-               "sequence, a MulRan sequence, a BEV PNG folder (imgs/ + poses.txt) or a ROS 1/2 "
-               "bag")
+SOURCE_HELP = "; ".join(loader.layout for loader in LOADERS) + " (docs/DATASETS.md)"
 
 
 def config_from_arguments(args: argparse.Namespace) -> Config:

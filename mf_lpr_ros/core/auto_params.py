@@ -3,7 +3,7 @@
 A few scans are measured (SensorProfile) and the descriptor follows from rules, each stated
 where it is applied (auto_descriptor):
 - voxel size: the paper's inverse-linear rule on occupied 1 m voxels per scan
-  (descriptor.auto_voxel_size);
+  (core.descriptor.auto_voxel_size);
 - height band: the ground is found below the sensor as the densest thin layer of low points,
   and the band keeps 0.5 m to 4.5 m above it (KITTI's band, -1.2 to 3.0 m at a 1.73 m mount,
   relative to its ground), so a low mount keeps what a high one keeps;

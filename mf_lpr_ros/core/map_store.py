@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from mf_lpr_ros import __version__
 from mf_lpr_ros.core.map_header import (
     ALIGN,
     MAX_HEADER_BYTES,
@@ -39,6 +38,7 @@ from mf_lpr_ros.core.map_header import (
 from mf_lpr_ros.core.pose import planar
 from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
 from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.version import __version__
 
 MAGIC = b"MFLPRMAP"
 FORMAT_VERSION = 1

@@ -36,14 +36,16 @@ class Sequence:
 
     Subclasses set name, stamps (n,), poses ((n, 4, 4) or None) and implement _read(indices),
     yielding Scans for increasing indices. A loader that open_source should find declares its
-    layout (one phrase for the error that lists them) and recognises(path), and is registered
-    with @register_loader; loaders are tried by ascending priority.
+    layout (one phrase for the error that lists them), what it does beyond reading (notes:
+    docs/DATASETS.md is generated from both) and recognises(path), and is registered with
+    @register_loader; loaders are tried by ascending priority.
     """
 
     name: str = ""
     stamps: np.ndarray
     poses: np.ndarray | None
     layout: ClassVar[str] = ""
+    notes: ClassVar[str] = ""
     priority: ClassVar[int] = 50
 
     @classmethod

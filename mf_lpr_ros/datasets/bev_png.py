@@ -26,6 +26,9 @@ FRAME_PERIOD_S = 0.1
 @register_loader
 class BevPngSequence(Sequence):
     layout = "a BEV PNG folder (imgs/*.png, poses.txt)"
+    notes = ("BEVPlace's layout; each image is the column density the descriptor thresholds, "
+             "and its sensor sits at a pixel centre (`Scan.sensor_offset_m`, corrected in the "
+             "pose)")
     priority = 70
 
     @classmethod

@@ -20,6 +20,7 @@ from mf_lpr_ros.errors import DatasetError
 @register_loader
 class KittiSequence(Sequence):
     layout = "a KITTI folder (velodyne/*.bin, poses.txt)"
+    notes = "optional `times.txt` (else scans 0.1 s apart); `poses.txt` optional for localising"
     priority = 20
 
     @classmethod

@@ -31,6 +31,7 @@ MAX_POSE_GAP_S = 1.0
 @register_loader
 class MulranSequence(Sequence):
     layout = "a MulRan sequence (Ouster/*.bin, global_pose.csv)"
+    notes = ("Ouster extrinsic, poses interpolated")
     priority = 40
 
     @classmethod

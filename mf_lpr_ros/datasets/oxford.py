@@ -52,6 +52,9 @@ _INS_COLUMNS = ("timestamp", "northing", "easting", "down", "roll", "pitch", "ya
 @register_loader
 class OxfordRadarSequence(Sequence):
     layout = "an Oxford Radar RobotCar session (velodyne_left/, gps/ins.csv)"
+    notes = ("raw `<utime>.png` or `.bin` scans; SDK decoding (HDL-32E table, 2 mm ranges, 1 m "
+             "minimum); INS NED turned into ENU, SDK extrinsics (or the session's "
+             "`extrinsics/*.txt`)")
     priority = 50
 
     @classmethod

@@ -40,6 +40,8 @@ def point_folder(root: Path) -> Path | None:
 class PointFolderSequence(Sequence):
     layout = ("a PCD/PLY folder (*.pcd, *.ply, or in pcd/ or ply/, with poses_tum.txt or KITTI "
               "poses.txt)")
+    notes = ("PCD ascii, binary and binary_compressed (LZF, `python-neo-lzf`); PLY ascii and "
+             "binary, either endianness")
     priority = 90
 
     @classmethod

@@ -49,6 +49,8 @@ def _pick_topic(connections, types: tuple[str, ...], wanted: str | None, what: s
 @register_loader
 class RosbagSequence(Sequence):
     layout = "a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)"
+    notes = ("read with `rosbags`; `--cloud-topic` / `--pose-topic` default to the only "
+             "PointCloud2 / Odometry-or-Pose topic")
     priority = 10
 
     @classmethod

@@ -29,6 +29,8 @@ _STAMP_TOLERANCE_S = 1e-4
 @register_loader
 class WildPlacesSequence(Sequence):
     layout = "a Wild-Places sequence (Clouds_downsampled/ or Clouds/, poses_aligned.csv)"
+    notes = ("PCD or float32 `.bin` clouds; the release's `<Forest>_evaluation_query.pickle` is "
+             "read by a loader that refuses any pickled code")
     priority = 60
 
     @classmethod

@@ -17,11 +17,11 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 
-from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, ParameterFault
 from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.io.pointcloud import decode_points
 from mf_lpr_ros.live.pose_buffer import PoseBuffer
-from mf_lpr_ros.ros.params import POSE_SOURCES, InputSettings, NodeParameters, ParameterFault
+from mf_lpr_ros.ros.params import NodeParameters, pose_source_topic
 from mf_lpr_ros.ros.qos import sensor_qos
 
 _LOG_REPEAT_S = 2.0
@@ -31,9 +31,8 @@ _SPIN_TIMEOUT_S = 0.1
 
 class LidarNodeMixin(NodeParameters):
     """What a node fed by PointCloud2 scans and, optionally, a pose stream needs, for plain
-    (rclpy Node) and managed (LifecycleNode) nodes alike: call init_lidar_state first."""
-
-    inputs: InputSettings
+    (rclpy Node) and managed (LifecycleNode) nodes alike: call init_lidar_state first. The
+    node's settings (mf_lpr_ros/live/node_settings.py) hold its inputs in settings.inputs."""
 
     def init_lidar_state(self) -> None:
         self.counters: Counter[str] = Counter()
@@ -47,7 +46,7 @@ class LidarNodeMixin(NodeParameters):
     def subscribe_poses(self, source: str, buffer: PoseBuffer,
                         on_pose: Callable[[], None], reliable: bool = False):
         """Subscribe to the pose source; returns the subscription."""
-        topic, message_type = POSE_SOURCES[source]
+        topic, message_type = pose_source_topic(source)
 
         def received(message) -> None:
             self.counters["poses_received"] += 1
@@ -65,10 +64,11 @@ class LidarNodeMixin(NodeParameters):
         return self.create_subscription(message_type, topic, received, sensor_qos(100, reliable))
 
     def decode_scan(self, message: PointCloud2) -> tuple[float, np.ndarray] | None:
-        """(stamp, points) of a valid scan (as self.inputs asks); None after logging why it was
-        rejected."""
-        expected_frame = self.inputs.sensor_frame_id
-        future_tolerance_s = self.inputs.future_tolerance_s
+        """(stamp, points) of a valid scan (as settings.inputs asks); None after logging why it
+        was rejected."""
+        inputs = self.settings.inputs
+        expected_frame = inputs.sensor_frame_id
+        future_tolerance_s = inputs.future_tolerance_s
         self.counters["scans_received"] += 1
         stamp = stamp_to_seconds(message.header.stamp)
         frame = message.header.frame_id
@@ -83,7 +83,7 @@ class LidarNodeMixin(NodeParameters):
                        f"node's clock ({self.now_seconds():.3f})")
         if problem is None:
             try:
-                points = decode_points(message, self.inputs.max_points)
+                points = decode_points(message, inputs.max_points)
             except (InvalidCloudError, ValueError, TypeError) as error:
                 problem = str(error)
         if problem is not None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,11 +41,16 @@ from visualization_msgs.msg import MarkerArray
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapParameterMismatch
-from mf_lpr_ros.live.localiser import Localiser, relative_transform, relocalised_pose
+from mf_lpr_ros.errors import (
+    InvalidCloudError,
+    InvalidPoseError,
+    MapParameterMismatch,
+    ParameterFault,
+)
+from mf_lpr_ros.live.localiser import LiveMatch, Localiser, relative_transform, relocalised_pose
+from mf_lpr_ros.live.node_settings import LIO_SAM_TOPIC, LocaliserSettings
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
-from mf_lpr_ros.ros.lidar_node import run_node
-from mf_lpr_ros.ros.localiser_params import LIO_SAM_TOPIC, LocaliserParameters
+from mf_lpr_ros.ros.lidar_node import LidarNodeMixin, run_node
 from mf_lpr_ros.ros.messages import (
     candidates_message,
     confidences_message,
@@ -54,7 +60,6 @@ from mf_lpr_ros.ros.messages import (
     match_markers,
     relocalisation_message,
 )
-from mf_lpr_ros.ros.params import NO_POSES, ParameterFault
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
 # Reliable (AMCL's /initialpose subscription) and transient local: a late subscriber still gets
@@ -82,39 +87,56 @@ class _Request:
     partial: tuple | None = None
 
 
-class LocaliserLogic(LocaliserParameters):
+class LocaliserLogic(LidarNodeMixin):
     """The localiser on any rclpy node class. Its life cycle, in the order a managed node goes
-    through it: declare_settings (parameters; a bad one stops start-up), configure (the map,
+    through it: read_settings (parameters; a bad one stops start-up), configure (the map,
     the search, publishers, the service, the search thread), activate (subscriptions,
     diagnostics), deactivate (they stop), cleanup (everything configure made is freed)."""
 
+    settings: LocaliserSettings
+
+    def read_settings(self) -> None:
+        """Declare every parameter (mf_lpr_ros/live/node_settings.py), read them into
+        self.settings (a bad value or combination raises ParameterFault) and freeze them."""
+        config, explicit = self.declare_config()
+        values = self.declare_node_parameters(LocaliserSettings.PARAMETERS)
+        self.freeze_parameters()
+        self.settings = LocaliserSettings.from_values(config, explicit, values)
+        # Scan arrival to published pose (accepted matches), and to any result.
+        self.latencies_ms: deque[float] = deque(maxlen=10_000)
+        self.result_latencies_ms: deque[float] = deque(maxlen=10_000)
+        self.searched_stamps: deque[float] = deque(maxlen=100_000)
+        self.last: LiveMatch | None = None
+        self.localiser: Localiser | None = None
+        self._inputs: list = []
+        self._diagnostics_timer = None
+        self._wake = threading.Condition()
+
     def configure(self, create_publisher) -> None:
         """Load the map and build the search; create_publisher is the node's publisher factory
-        (create_lifecycle_publisher on a managed node)."""
+        (create_lifecycle_publisher on a managed node). Only the checks that need the map are
+        made here."""
         settings = self.settings
-        if settings.config.auto and self.mode == "loop_closure":
-            raise ParameterFault("parameter preset: auto derives the descriptor when a map is "
-                                 "built (map_builder, mf-lpr build-map); in loop_closure mode "
-                                 "the map grows from the first scan on, so name a preset")
-        reference_map = self._open_map(settings.map_path, settings.config, settings.explicit)
+        inputs = settings.inputs
+        reference_map = self._open_map()
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
-        if config.descriptor.level and self.inputs.pose_source == NO_POSES:
+        if config.descriptor.level and not inputs.has_poses:
             raise ParameterFault("parameter pose_source must name a pose stream: "
                                  "descriptor.level needs each scan's roll and pitch")
         try:
-            self.localiser = Localiser(reference_map, config, mode=self.mode,
+            self.localiser = Localiser(reference_map, config, mode=settings.mode,
                                        exclude_recent_s=settings.exclude_recent_s,
                                        min_score=settings.min_score,
-                                       odometry_known=self.inputs.pose_source != NO_POSES)
+                                       odometry_known=inputs.has_poses)
         except ValueError as error:
             raise ParameterFault(str(error)) from None
-        self.map_frame_id = self.inputs.map_frame_id or reference_map.frame_id or "map"
+        self.map_frame_id = inputs.map_frame_id or reference_map.frame_id or "map"
         self.synchroniser = None
-        if self.inputs.pose_source != NO_POSES:
-            self.poses = PoseBuffer(max_gap_s=self.inputs.max_pose_gap_s)
-            self.synchroniser = ScanPoseSynchroniser(self.poses, self.inputs.extrinsic)
+        if inputs.has_poses:
+            self.poses = PoseBuffer(max_gap_s=inputs.max_pose_gap_s)
+            self.synchroniser = ScanPoseSynchroniser(self.poses, inputs.extrinsic)
         self._publishers = []
 
         def publisher(message_type, topic, qos):
@@ -127,11 +149,11 @@ class LocaliserLogic(LocaliserParameters):
         self.candidates_pub = publisher(PoseArray, "~/candidates", 10)
         self.confidences_pub = publisher(Float64MultiArray, "~/candidate_confidences", 10)
         self.loop_closure_pub = publisher(Float64MultiArray, "loop_closure", 100) \
-            if "mf_lpr" in self.loop_closure_formats else None
+            if "mf_lpr" in settings.loop_closure_formats else None
         # Reliable and keep-last: compatible with LIO-SAM's best-effort depth-1 subscriber and
         # with the reliable ones of its forks.
         self.lio_sam_pub = publisher(Float64MultiArray, LIO_SAM_TOPIC, 10) \
-            if "lio_sam" in self.loop_closure_formats else None
+            if "lio_sam" in settings.loop_closure_formats else None
         self.markers_pub = publisher(MarkerArray, "markers", 10)
         self.diagnostics_pub = publisher(DiagnosticArray, "diagnostics", 10)
         self._requests: list[_Request] = []
@@ -146,12 +168,12 @@ class LocaliserLogic(LocaliserParameters):
         self._worker = threading.Thread(target=self._work, name="mf_lpr_search", daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"{self.mode}: {self.localiser.reference_count} references, voxel "
+            f"{settings.mode}: {self.localiser.reference_count} references, voxel "
             f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}', "
-            f"loop closures as {sorted(self.loop_closure_formats)}")
+            f"loop closures as {sorted(settings.loop_closure_formats)}")
         if self.localiser.submap is not None:
             window = self.localiser.submap.window
-            if self.inputs.pose_source == NO_POSES:
+            if not inputs.has_poses:
                 self.get_logger().warning(
                     f"the map was built with submaps (descriptor.submap_m = {window.window_m} m)"
                     " but no pose_source gives odometry: scans are described alone, and recall"
@@ -169,11 +191,12 @@ class LocaliserLogic(LocaliserParameters):
     def activate(self) -> None:
         """Subscribe to the scans (and poses) and start the diagnostics."""
         settings = self.settings
+        inputs = settings.inputs
         if self.synchroniser is not None:
-            self._inputs.append(self.subscribe_poses(self.inputs.pose_source, self.poses,
-                                                     self._pair, self.inputs.reliable))
+            self._inputs.append(self.subscribe_poses(inputs.pose_source, self.poses,
+                                                     self._pair, inputs.reliable))
         self._inputs.append(self.create_subscription(PointCloud2, "points", self._on_scan,
-                                                     sensor_qos(5, self.inputs.reliable)))
+                                                     sensor_qos(5, inputs.reliable)))
         self._diagnostics_timer = self.create_timer(settings.diagnostics_period_s,
                                                     self._publish_diagnostics)
 
@@ -204,15 +227,13 @@ class LocaliserLogic(LocaliserParameters):
         self._publishers = []
         self.localiser = None
 
-    def _open_map(self, map_path: str, config: Config, explicit: dict) -> ReferenceMap:
-        if self.mode == "loop_closure":
+    def _open_map(self) -> ReferenceMap:
+        settings = self.settings
+        config, map_path = settings.config, settings.map_path
+        if settings.mode == "loop_closure":
             return ReferenceMap(config.descriptor, frame_id="")
-        if not map_path:
-            raise ParameterFault("parameter map_path must name a map file in relocalise mode")
         reference_map = ReferenceMap.load(map_path)
-        requested = {k.split(".", 1)[1]: v for k, v in explicit.items()
-                     if k.startswith("descriptor.")}
-        if requested:
+        if any(name.startswith("descriptor.") for name in settings.explicit):
             try:
                 reference_map.check_params(config.descriptor)
             except MapParameterMismatch as error:
@@ -243,7 +264,7 @@ class LocaliserLogic(LocaliserParameters):
         for paired in self.synchroniser.ready(final=final):
             stamp, received = paired.extra
             self.localiser.observe(paired.stamp, paired.points, paired.pose)
-            if self.mode == "loop_closure":
+            if self.settings.mode == "loop_closure":
                 self.localiser.add_reference(paired)
             self._offer(_PendingScan(stamp, paired.stamp, paired.points, paired.pose, received))
         self.counters["scans_without_pose"] = self.synchroniser.dropped_without_pose
@@ -300,7 +321,7 @@ class LocaliserLogic(LocaliserParameters):
             self.get_logger().debug(f"match rejected at {scan.seconds:.3f}: {result.reason}")
             return
         reference_pose = self.localiser.reference_pose(match.reference_index)
-        world_T_base = relocalised_pose(match, reference_pose, self.inputs.extrinsic)
+        world_T_base = relocalised_pose(match, reference_pose, self.settings.inputs.extrinsic)
         answer = self._answer(scan, result, world_T_base)
         with self._wake:
             asked = [r for r in self._requests if r.asked <= scan.received]
@@ -308,7 +329,7 @@ class LocaliserLogic(LocaliserParameters):
             self._requests = [r for r in self._requests if r not in answering]
             for request in asked:
                 request.partial = (scan, match, world_T_base, answer)
-        if self.publish_mode == "continuous" or answering:
+        if self.settings.publish_mode == "continuous" or answering:
             self._publish_pose(scan, match, world_T_base)
         for request in answering:
             request.answer.set_result(answer)
@@ -319,7 +340,7 @@ class LocaliserLogic(LocaliserParameters):
                 match.confidence))
         if self.lio_sam_pub is not None:
             self.lio_sam_pub.publish(lio_sam_loop_message(scan.stamp, result.reference_stamp))
-        if self.publish_markers:
+        if self.settings.publish_markers:
             self.markers_pub.publish(match_markers(scan.stamp, self.map_frame_id, world_T_base,
                                                    reference_pose, True))
         self.counters["matches_accepted"] += 1
@@ -330,7 +351,8 @@ class LocaliserLogic(LocaliserParameters):
         self.relocalisation_pub.publish(relocalisation_message(
             scan.stamp, self.map_frame_id, world_T_base, match.covariance))
         hypotheses = [relocalised_pose(h, self.localiser.reference_pose(h.reference_index),
-                                       self.inputs.extrinsic) for h in match.hypotheses]
+                                       self.settings.inputs.extrinsic)
+                      for h in match.hypotheses]
         self.candidates_pub.publish(candidates_message(scan.stamp, self.map_frame_id,
                                                        hypotheses))
         self.confidences_pub.publish(confidences_message(
@@ -355,12 +377,13 @@ class LocaliserLogic(LocaliserParameters):
         with self._wake:
             self._requests.append(pending)
         self.counters["requests"] += 1
-        timer = self.create_timer(self.request_timeout_s, lambda: self._expire(pending))
+        timeout_s = self.settings.request_timeout_s
+        timer = self.create_timer(timeout_s, lambda: self._expire(pending))
         answer = await pending.answer
         self.destroy_timer(timer)
         response.success = answer is not None
         response.message = answer if answer is not None else (
-            f"no scan passed verification within request_timeout_s = {self.request_timeout_s} s"
+            f"no scan passed verification within request_timeout_s = {timeout_s} s"
             f" (last result: {self.last.reason if self.last else 'no scan searched'})")
         if answer is None:
             self.counters["requests_timed_out"] += 1
@@ -407,7 +430,7 @@ class LocaliserNode(LocaliserLogic, Node):
     def __init__(self, node_name: str = "localiser", **kwargs) -> None:
         Node.__init__(self, node_name, **kwargs)
         self.init_lidar_state()
-        self.declare_settings()
+        self.read_settings()
         self.configure(self.create_publisher)
         self.activate()
 

@@ -7,10 +7,9 @@ from __future__ import annotations
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from mf_lpr_ros.errors import MapFileError
+from mf_lpr_ros.errors import MapFileError, ParameterFault
 from mf_lpr_ros.ros.lidar_node import run_node
 from mf_lpr_ros.ros.localiser import LocaliserLogic
-from mf_lpr_ros.ros.params import ParameterFault
 
 
 class ManagedLocaliserNode(LocaliserLogic, LifecycleNode):
@@ -21,7 +20,7 @@ class ManagedLocaliserNode(LocaliserLogic, LifecycleNode):
     def __init__(self, node_name: str = "localiser", **kwargs) -> None:
         LifecycleNode.__init__(self, node_name, **kwargs)
         self.init_lidar_state()
-        self.declare_settings()
+        self.read_settings()
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:

@@ -23,52 +23,32 @@ from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapFileError
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapFileError, ParameterFault
 from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.node_settings import POSE_SOURCES, MapBuilderSettings
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
 from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
-from mf_lpr_ros.ros.params import POSE_SOURCES, ParameterFault
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
-IF_EXISTS = ("error", "append", "overwrite")
 # As map servers publish a map: reliable and transient local, so a map published before this
 # node started still arrives.
 GLOBAL_MAP_QOS = latched_qos()
 
 
 class MapBuilderNode(LidarNode):
+    settings: MapBuilderSettings
+
     def __init__(self, node_name: str = "map_builder", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         config, _ = self.declare_config()
-        map_path, if_exists, keep_clouds = self._declare_output()
-        self.inputs = self.declare_inputs(
-            pose_default="odom", pose_use="the poses of the reference scans",
-            map_frame_use="frame of the map ('' = the pose messages' frame)")
-        self.global_map_topic = self.typed_parameter(
-            "global_map_topic", "", "a PointCloud2 global map topic (transient local) to render "
-            "a reference grid from, instead of building from scans ('' = off)")
-        self.sensor_height_m = self.typed_parameter(
-            "sensor_height_m", 1.8, "with global_map_topic: the sensor's height above the "
-            "ground", lambda v: v > 0, "> 0")
+        values = self.declare_node_parameters(MapBuilderSettings.PARAMETERS)
         self.freeze_parameters()
-        path, existing = self._open_output(Path(map_path), if_exists)
-        if self.global_map_topic:
+        self.settings = settings = MapBuilderSettings.from_values(config, values)
+        path, existing = self._open_output(Path(settings.map_path), settings.if_exists)
+        if settings.global_map_topic:
             self._start_global_map_mode(config, path)
             return
-        self._start_scan_mode(config, path, existing, keep_clouds)
-
-    def _declare_output(self) -> tuple[str, str, bool]:
-        map_path = self.typed_parameter("map_path", "mf_lpr_map.mfmap", "map file to write",
-                                        lambda v: bool(v), "a file path")
-        if_exists = self.typed_parameter(
-            "if_exists", "error", "when map_path exists: error, append (extend it) or overwrite",
-            lambda v: v in IF_EXISTS, f"one of {IF_EXISTS}")
-        self.save_period_s = self.typed_parameter("save_period_s", 10.0,
-                                                  "seconds between periodic saves",
-                                                  lambda v: v > 0, "> 0")
-        keep_clouds = self.typed_parameter("keep_clouds", False,
-                                           "store reference clouds (enables ICP refinement)")
-        return map_path, if_exists, keep_clouds
+        self._start_scan_mode(config, path, existing, settings.keep_clouds)
 
     def _open_output(self, path: Path, if_exists: str) -> tuple[Path, ReferenceMap | None]:
         """The map to extend (if_exists append) or None; refuses an existing file by default."""
@@ -86,7 +66,7 @@ class MapBuilderNode(LidarNode):
 
     def _start_scan_mode(self, config, path: Path, existing: ReferenceMap | None,
                          keep_clouds: bool) -> None:
-        inputs = self.inputs
+        inputs = self.settings.inputs
         self.builder = MapBuilder(config, path, keep_clouds=keep_clouds, reference_map=existing,
                                   sensor_frame_id=inputs.sensor_frame_id,
                                   frame_id=inputs.map_frame_id or "map")
@@ -98,25 +78,22 @@ class MapBuilderNode(LidarNode):
         self.subscribe_poses(inputs.pose_source, self.poses, self._pair, inputs.reliable)
         self.create_subscription(PointCloud2, "points", self._on_scan,
                                  sensor_qos(50, inputs.reliable))
-        self.create_timer(self.save_period_s, self._periodic_save)
+        self.create_timer(self.settings.save_period_s, self._periodic_save)
         extent = f"appending to {len(existing)} references" if existing else "new map"
         self.get_logger().info(
             f"building {path} ({extent}): voxel {self._voxel_text()}, spacing "
             f"{config.spacing_m} m, poses from '{POSE_SOURCES[inputs.pose_source][0]}'")
 
     def _start_global_map_mode(self, config, path: Path) -> None:
-        if config.auto:
-            raise ParameterFault("parameter preset: auto measures scans; a global map has none, "
-                                 "so name a preset with global_map_topic")
         self.builder = None
         self._global_config, self._global_path = config, path
         self._global_worker: threading.Thread | None = None
         self.global_maps_built = 0
-        self.create_subscription(PointCloud2, self.global_map_topic, self._on_global_map,
-                                 GLOBAL_MAP_QOS)
+        topic = self.settings.global_map_topic
+        self.create_subscription(PointCloud2, topic, self._on_global_map, GLOBAL_MAP_QOS)
         self.get_logger().info(
-            f"waiting for a global map on '{self.global_map_topic}' to render {path} "
-            f"(spacing {config.spacing_m} m, sensor {self.sensor_height_m} m above the ground)")
+            f"waiting for a global map on '{topic}' to render {path} (spacing "
+            f"{config.spacing_m} m, sensor {self.settings.sensor_height_m} m above the ground)")
 
     def _on_global_map(self, message: PointCloud2) -> None:
         from mf_lpr_ros.io.pointcloud import decode_points
@@ -131,7 +108,7 @@ class MapBuilderNode(LidarNode):
             self.counters["global_maps_rejected"] += 1
             self.log_problem("global_map", f"global map rejected: {error}")
             return
-        frame = message.header.frame_id or self.inputs.map_frame_id or "map"
+        frame = message.header.frame_id or self.settings.inputs.map_frame_id or "map"
         self._global_worker = threading.Thread(target=self._render_global_map,
                                                args=(points, frame), daemon=True)
         self._global_worker.start()
@@ -140,12 +117,12 @@ class MapBuilderNode(LidarNode):
         from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
 
         render = RenderParams(spacing_m=self._global_config.spacing_m,
-                              sensor_height_m=self.sensor_height_m)
+                              sensor_height_m=self.settings.sensor_height_m)
         try:
-            reference_map = build_global_map(f"topic {self.global_map_topic}",
+            reference_map = build_global_map(f"topic {self.settings.global_map_topic}",
                                              self._global_config, points=points, render=render,
                                              progress=False)
-            reference_map.frame_id = self.inputs.map_frame_id or frame
+            reference_map.frame_id = self.settings.inputs.map_frame_id or frame
             reference_map.save(self._global_path)
         except (InvalidCloudError, ValueError, OSError, MapFileError) as error:
             self.counters["global_maps_rejected"] += 1
@@ -168,7 +145,7 @@ class MapBuilderNode(LidarNode):
         self._pair()
 
     def _pair(self, final: bool = False) -> None:
-        if not self.inputs.map_frame_id and self.pose_frame_id:
+        if not self.settings.inputs.map_frame_id and self.pose_frame_id:
             self.builder.map.frame_id = self.pose_frame_id
         for scan in self.synchroniser.ready(final=final):
             try:

@@ -17,34 +17,30 @@ from std_msgs.msg import Float64MultiArray, Header
 
 from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.pose_graph import KeyframeGraph
-from mf_lpr_ros.errors import MissingDependencyError
+from mf_lpr_ros.errors import MissingDependencyError, ParameterFault
 from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
+from mf_lpr_ros.live.node_settings import PoseGraphSettings
 from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
 from mf_lpr_ros.ros.messages import decode_loop_closure, seconds_to_stamp, set_pose
-from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.ros.qos import sensor_qos
 
 
 class PoseGraphNode(LidarNode):
     def __init__(self, node_name: str = "pose_graph", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        spacing = self.typed_parameter("keyframe_spacing_m", 1.0,
-                                       "a keyframe every this much travel", lambda v: v >= 0,
-                                       ">= 0")
-        publish_period_s = self.typed_parameter("publish_period_s", 1.0,
-                                                "seconds between path messages",
-                                                lambda v: v > 0, "> 0")
-        reliable = self.declare_reliable_qos()
+        settings = PoseGraphSettings.from_values(
+            self.declare_node_parameters(PoseGraphSettings.PARAMETERS))
         self.freeze_parameters()
         try:
-            self.graph = KeyframeGraph(spacing)
+            self.graph = KeyframeGraph(settings.keyframe_spacing_m)
         except MissingDependencyError as error:
             raise ParameterFault(str(error)) from None
         self.frame_id = ""
-        self.create_subscription(Odometry, "odom", self._on_odometry, sensor_qos(100, reliable))
+        self.create_subscription(Odometry, "odom", self._on_odometry,
+                                 sensor_qos(100, settings.reliable))
         self.create_subscription(Float64MultiArray, "loop_closure", self._on_closure, 100)
         self.path_pub = self.create_publisher(Path, "path", 10)
-        self.create_timer(publish_period_s, self._publish_path)
+        self.create_timer(settings.publish_period_s, self._publish_path)
 
     def _on_odometry(self, message: Odometry) -> None:
         self.counters["odometry_received"] += 1

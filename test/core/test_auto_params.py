@@ -1,4 +1,4 @@
-"""preset auto: the descriptor derived from the scans (mf_lpr_ros/auto_params.py)."""
+"""preset auto: the descriptor derived from the scans (mf_lpr_ros/core/auto_params.py)."""
 
 import math
 

@@ -90,13 +90,13 @@ def test_empty_and_single_reference_maps(tmp_path, rng, world):
 
 
 @pytest.mark.slow
-def test_sigkill_while_saving_50_times_never_loses_an_acknowledged_reference(tmp_path):
+def test_sigkill_while_saving_30_times_never_loses_an_acknowledged_reference(tmp_path):
     """The map builder's save path (MapBuilder.save, used by the node) killed at random
     moments; most of its time goes to writing a growing multi-megabyte file."""
     path = tmp_path / "killed.mfmap"
     chooser = random.Random(7)
     acknowledged = 0
-    for attempt in range(50):
+    for attempt in range(30):
         process = subprocess.Popen([sys.executable, "-c", SAVER, str(path)],
                                    stdout=subprocess.PIPE, text=True)
         first = process.stdout.readline()              # started and saved at least once
@@ -108,7 +108,7 @@ def test_sigkill_while_saving_50_times_never_loses_an_acknowledged_reference(tmp
         loaded = ReferenceMap.load(path)
         assert len(loaded) >= acknowledged, f"attempt {attempt}"
         assert loaded.has_clouds and len(loaded.cloud(len(loaded) - 1)) == 20000
-    assert acknowledged >= 50
+    assert acknowledged >= 30
     leftovers = [p.name for p in tmp_path.iterdir() if p.name != "killed.mfmap"]
     assert len(leftovers) <= 1                          # at most the temp file of the last kill
 
@@ -121,8 +121,8 @@ def _rss_mb() -> float:
 def test_repeated_searches_of_a_large_map_do_not_grow_memory(rng):
     config = preset("kitti")
     reference_map = ReferenceMap(config.descriptor)
-    occupancy = rng.random((2000, 120, 120)) < 0.1
-    for index in range(2000):
+    occupancy = rng.random((1000, 120, 120)) < 0.1
+    for index in range(1000):
         reference_map.append(occupancy[index], np.eye(4), float(index))
     del occupancy
     localiser = Localiser(reference_map, config)
@@ -141,10 +141,10 @@ def test_a_20_hz_stream_into_a_slow_localiser_stays_flat_and_fresh():
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
     from bench_soak import soak
 
-    samples = soak(seconds=24.0, references=1500, hz=20.0, sample_every_s=3.0, trace=True)
+    samples = soak(seconds=15.0, references=1500, hz=20.0, sample_every_s=3.0, trace=True)
     retained_mb = samples.pop()["traced_mb"]
     last = samples[-1]
-    assert last["received"] >= 0.9 * 20 * 24
+    assert last["received"] >= 0.9 * 20 * 15
     assert last["dropped"] > last["searched"]               # the search is the bottleneck...
     assert last["searched"] + last["dropped"] >= last["received"] - 2   # ...and drops are counted
     # A backlog or a leak per scan would retain ~3.6 MB/s (20 Hz x 180 kB scans); what Python and

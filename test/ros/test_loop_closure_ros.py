@@ -12,10 +12,11 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.core.pose import planar, pose_matrix
 from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
+from mf_lpr_ros.errors import ParameterFault
 from mf_lpr_ros.evaluation.slam import DriftModel, with_planar
 from mf_lpr_ros.io.messages import stamp_to_seconds
+from mf_lpr_ros.live.node_settings import LIO_SAM_TOPIC
 from mf_lpr_ros.ros.localiser import LocaliserNode
-from mf_lpr_ros.ros.localiser_params import LIO_SAM_TOPIC
 from mf_lpr_ros.ros.messages import (
     decode_loop_closure,
     loop_closure_message,
@@ -23,7 +24,6 @@ from mf_lpr_ros.ros.messages import (
     points_to_pointcloud2,
     seconds_to_stamp,
 )
-from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.sim.synthetic import route, scan_world
 
 START_S = 1000.0

@@ -71,7 +71,7 @@ def _call(ros_graph, client, timeout_s: float = 30.0) -> Trigger.Response:
 def test_each_request_publishes_one_accurate_pose_with_amcls_qos(ros_graph, synthetic_map):
     path, queries = synthetic_map
     node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path))
-    assert node.publish_mode == "on_request"
+    assert node.settings.publish_mode == "on_request"
     poses: list = []
     ros_graph.node.create_subscription(PoseWithCovarianceStamped, "relocalisation",
                                        poses.append, AMCL_QOS)

@@ -13,6 +13,7 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar, pose_matrix, wrap_angle
+from mf_lpr_ros.errors import ParameterFault
 from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import (
@@ -21,7 +22,6 @@ from mf_lpr_ros.ros.messages import (
     points_to_pointcloud2,
     seconds_to_stamp,
 )
-from mf_lpr_ros.ros.params import ParameterFault
 from mf_lpr_ros.sim.synthetic import route, scan_world
 
 

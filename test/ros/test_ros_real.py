@@ -42,14 +42,26 @@ def balm_bag(data_dir):
 
 
 @pytest.mark.slow
-def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag, tmp_path):
+def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag,
+                                                                       tmp_path):
+    """One replay of the real bag into the three nodes at the defaults of the handheld preset:
+    the live map equals the offline one; the localiser's closures are right (none false) and
+    cover most revisits; the example back end keeps them all and stays on the bag's poses."""
+    pytest.importorskip("gtsam", reason="gtsam not installed (pip install gtsam)")
+    from nav_msgs.msg import Path
+
+    from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
+    from mf_lpr_ros.ros.pose_graph import PoseGraphNode
+
     bag, sequence = balm_bag
     map_path = tmp_path / "balm.mfmap"
     builder = ros_graph.start(MapBuilderNode, preset="handheld", map_path=str(map_path))
     localiser = ros_graph.start(LocaliserNode, preset="handheld", mode="loop_closure",
                                 pose_source="odom", exclude_recent_s=EXCLUDE_RECENT_S)
+    back_end = ros_graph.start(PoseGraphNode, keyframe_spacing_m=0.5, publish_period_s=0.5)
     closures = ros_graph.collect(Float64MultiArray, "loop_closure")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    paths = ros_graph.collect(Path, "path")
     report = replay_bag(bag, rate=3.0, node=ros_graph.node, wait_for_subscribers=2,
                         progress=False)
     assert report.published == {"/points": len(sequence), "/odom": len(sequence)}
@@ -71,17 +83,30 @@ def test_bag_through_map_builder_and_loop_closure_localiser(ros_graph, balm_bag,
     stamp_index = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
     by_stamp = {round(stamp_to_seconds(m.header.stamp), 3): m for m in poses}
     closed = set()
+    assert len(closures) >= 5
     for closure in map(decode_loop_closure, closures):
         query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
+        reference = stamp_index[round(stamp_to_seconds(closure["reference_stamp"]), 3)]
         translation, yaw = errors(planar_of_message(by_stamp[round(stamp_to_seconds(
             closure["query_stamp"]), 3)]), truth[query])
         assert translation < 0.5 and yaw < 2.0, \
             f"closure of scan {query} is {translation:.2f} m off"
+        implied = sequence.poses[reference] @ closure["reference_T_query"]
+        assert np.hypot(*(implied[:2, 3] - truth[query, :2])) < 0.5     # no false closure
         closed.add(query)
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
                          EXCLUDE_RECENT_S, radius_m=3.0)
     assert len(revisited) >= 5
     assert len(closed & revisited) >= 0.5 * len(revisited)
+
+    # The back end uses every closure and its path stays on the bag's poses.
+    assert ros_graph.wait_for(lambda: back_end.counters["closures_received"] == len(closures))
+    assert back_end.graph.graph.closures_used == len(closures)
+    assert ros_graph.wait_for(lambda: paths and len(paths[-1].poses) ==
+                              len(back_end.graph.keyframe_stamps))
+    keyframes = [stamp_index[round(stamp_to_seconds(p.header.stamp), 3)] for p in paths[-1].poses]
+    path = np.array([[p.pose.position.x, p.pose.position.y, 0.0] for p in paths[-1].poses])
+    assert absolute_trajectory_error(path, truth[keyframes]) < 0.1
 
 
 @pytest.fixture(scope="module")
@@ -147,41 +172,6 @@ def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_bag_through_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag):
-    """The localiser's closures on the real bag at its defaults: none false, and the example
-    back end keeps them all and stays on the bag's poses."""
-    pytest.importorskip("gtsam", reason="gtsam not installed (pip install gtsam)")
-    from nav_msgs.msg import Path
-
-    from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
-    from mf_lpr_ros.ros.pose_graph import PoseGraphNode
-
-    bag, sequence = balm_bag
-    localiser = ros_graph.start(LocaliserNode, preset="handheld", mode="loop_closure",
-                                pose_source="odom", exclude_recent_s=EXCLUDE_RECENT_S)
-    back_end = ros_graph.start(PoseGraphNode, keyframe_spacing_m=0.5, publish_period_s=0.5)
-    closures = ros_graph.collect(Float64MultiArray, "loop_closure")
-    paths = ros_graph.collect(Path, "path")
-    replay_bag(bag, rate=3.0, node=ros_graph.node, wait_for_subscribers=2, progress=False,
-               topics=["/points", "/odom"])
-    ros_graph.wait_for(localiser.is_idle, 30)
-    assert ros_graph.wait_for(lambda: back_end.counters["closures_received"] == len(closures))
-    assert len(closures) >= 5
-    truth = planar(sequence.poses)
-    stamp_index = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
-    for closure in map(decode_loop_closure, closures):
-        query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
-        reference = stamp_index[round(stamp_to_seconds(closure["reference_stamp"]), 3)]
-        implied = sequence.poses[reference] @ closure["reference_T_query"]
-        assert np.hypot(*(implied[:2, 3] - truth[query, :2])) < 0.5     # no false closure
-    assert back_end.graph.graph.closures_used == len(closures)
-    assert ros_graph.wait_for(lambda: paths and len(paths[-1].poses) ==
-                              len(back_end.graph.keyframe_stamps))
-    keyframes = [stamp_index[round(stamp_to_seconds(p.header.stamp), 3)] for p in paths[-1].poses]
-    path = np.array([[p.pose.position.x, p.pose.position.y, 0.0] for p in paths[-1].poses])
-    assert absolute_trajectory_error(path, truth[keyframes]) < 0.1
-
-
 def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, first_half_map):
     """nav2's way on real scans: each ~/relocalise call answers with the first verified scan
     after it, within 0.5 m and 2 degrees, and publishes that pose once."""
