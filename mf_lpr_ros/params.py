@@ -178,6 +178,16 @@ class SearchParams:
         changes; the reported place is the nearest one. rerank_margin 0 = off, the default:
         tuned on KITTI 00 alone at 0.1 it gained 3 points there and lost 5.5 on held-out
         KITTI 02 and 10 on rotated 02 (docs/RESULTS.md, "Default changes").
+    query_footprint: the cells of the query that count. "window": the map's footprint (the
+        disc or square, a field-of-view wedge), its unoccupied cells free space (w).
+        "observed": only the cells the query has seen (in each direction, up to its farthest
+        return; core.descriptor.observed_cells), the rest weight 0: what lies behind a facade
+        or outside a narrow sensor's view is unknown, not free. "auto" (default): observed
+        against maps rendered from a global point cloud, whose references are complete
+        virtual views that a real scan only partly sees (HKU Avia keyframes, second half on a
+        grid rendered from the first: within 1 m 0 % -> 31 %), window against maps of scans,
+        where both sides are partial views and free space is evidence (observed costs 1.3
+        points on rotated KITTI 00 and 8 of 13 closures on BALM: docs/RESULTS.md).
     """
 
     rotation_step_deg: float = 10.0
@@ -201,6 +211,7 @@ class SearchParams:
     consistency_tolerance_deg: float = 5.0
     rerank_margin: float = 0.0
     rerank_agreement_m: float = 2.0
+    query_footprint: str = "auto"
 
     def __post_init__(self) -> None:
         require_parameter(0 < self.rotation_step_deg <= 180
@@ -237,6 +248,9 @@ class SearchParams:
             require_parameter(getattr(self, name) > 0, name, "> 0", getattr(self, name))
         require_parameter(0.0 <= self.rerank_margin < 1.0, "rerank_margin", "in [0, 1)",
                  self.rerank_margin)
+        require_parameter(self.query_footprint in ("auto", "window", "observed"),
+                          "query_footprint", "'auto', 'window' or 'observed'",
+                          self.query_footprint)
         require_parameter(self.rerank_agreement_m > 0, "rerank_agreement_m", "> 0",
                  self.rerank_agreement_m)
         require_parameter(self.consistency_min_separation_m >= 0, "consistency_min_separation_m",

@@ -32,7 +32,12 @@ from typing import Iterable
 import numpy as np
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.descriptor import occupied_unit_voxels, voxel_size_for_density
+from mf_lpr_ros.core.descriptor import (
+    FULL_CIRCLE_BELOW_DEG,
+    largest_empty_run,
+    occupied_unit_voxels,
+    voxel_size_for_density,
+)
 from mf_lpr_ros.core.pose import level_points
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
@@ -42,7 +47,6 @@ GROUND_BIN_M = 0.1
 BAND_ABOVE_GROUND_M = (0.5, 4.5)
 TILT_SPREAD_DEG = 3.0
 AZIMUTH_BINS = 72
-FULL_CIRCLE_BELOW_DEG = 300.0
 # Returns per occupied 1 m voxel of one scan: ~1.5 for the simulated Mid-360, 4-5 for the
 # simulated VLP-16 / HDL-32 and KITTI's HDL-64 keyframes, 8 for BALM's voxelised Ouster.
 SPARSE_RETURNS_PER_VOXEL = 2.5
@@ -199,12 +203,7 @@ def _field_of_view(points: np.ndarray) -> tuple[float, float]:
     if seen.all():
         return 360.0, 0.0
     # The largest run of empty bins (circularly) is what the sensor does not see.
-    doubled = np.concatenate([~seen, ~seen])
-    best_length, best_end, run = 0, 0, 0
-    for k, empty in enumerate(doubled):
-        run = run + 1 if empty else 0
-        if run > best_length:
-            best_length, best_end = min(run, AZIMUTH_BINS), k
+    best_length, best_end = largest_empty_run(seen)
     bin_deg = 360.0 / AZIMUTH_BINS
     width = bin_deg * (AZIMUTH_BINS - best_length)
     gap_centre = (best_end + 1 - best_length / 2) * bin_deg

@@ -41,6 +41,50 @@ def footprint(params: DescriptorParams) -> np.ndarray | None:
                       params.heading_deg)
 
 
+# A sensor whose returns span less than this many degrees of azimuth is a narrow (forward-
+# looking) one: views of a place from other headings share no ground.
+FULL_CIRCLE_BELOW_DEG = 300.0
+_DIRECTION_BINS = 180
+
+
+def largest_empty_run(seen: np.ndarray) -> tuple[int, int]:
+    """(length, last index) of the longest circular run of False in seen (azimuth bins)."""
+    if seen.all():
+        return 0, 0
+    doubled = np.concatenate([~seen, ~seen]).astype(np.int64)
+    # Run lengths: cumulative count since the last seen bin.
+    resets = np.maximum.accumulate(np.where(doubled == 0, np.arange(len(doubled)), -1))
+    runs = np.arange(len(doubled)) - resets
+    end = int(np.argmax(runs))
+    return min(int(runs[end]), len(seen)), end
+
+
+@lru_cache(maxsize=4)
+def _direction_bins(size: int) -> np.ndarray:
+    """Each cell centre's 2-degree azimuth bin from the sensor at corner (size/2, size/2)."""
+    centre = np.arange(size) - size / 2 + 0.5
+    y, x = np.meshgrid(centre, centre, indexing="ij")
+    return ((np.arctan2(y, x) + np.pi) / (2 * np.pi) * _DIRECTION_BINS).astype(int) \
+        % _DIRECTION_BINS
+
+
+def observed_cells(occupancy: np.ndarray, spread_bins: int = 2) -> np.ndarray:
+    """The directions a narrow sensor's scan has seen: every cell of each 2-degree direction
+    within spread_bins of one holding an occupied cell; a direction it did not see says nothing
+    (not free space). A scan whose directions span FULL_CIRCLE_BELOW_DEG or more saw all round
+    (a street with no obstacle in the window was seen free): all its cells count."""
+    bins = _direction_bins(occupancy.shape[0])
+    seen = np.zeros(_DIRECTION_BINS, dtype=bool)
+    seen[np.unique(bins[occupancy])] = True
+    gap, _ = largest_empty_run(seen)
+    if (_DIRECTION_BINS - gap) * 360.0 / _DIRECTION_BINS >= FULL_CIRCLE_BELOW_DEG:
+        return np.ones(occupancy.shape, dtype=bool)
+    spread = seen.copy()
+    for step in range(1, spread_bins + 1):
+        spread |= np.roll(seen, step) | np.roll(seen, -step)
+    return spread[bins]
+
+
 def turns_with_sensor(params: DescriptorParams) -> bool:
     """Whether the footprint changes when the sensor turns (a limited field of view)."""
     return params.field_of_view_deg < 360

@@ -42,6 +42,9 @@ from mf_lpr_ros.version import __version__
 
 MAGIC = b"MFLPRMAP"
 FORMAT_VERSION = 1
+# metadata["kind"] of a map rendered from a global point cloud (pipeline.global_map): its
+# references are complete virtual views, not scans.
+GLOBAL_MAP_KIND = "global_map_grid"
 _PREAMBLE = struct.Struct("<8sIII")
 _ALIGN = ALIGN
 _CRC_BLOCK = 1 << 24

@@ -13,13 +13,14 @@ import numpy as np
 from mf_lpr_ros.core.backends import make_backend
 from mf_lpr_ros.core.descriptor import (
     footprint,
+    observed_cells,
     pooled_weights,
     prepare_rotations,
     rotate_occupancy,
     turns_with_sensor,
     weighted,
 )
-from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
 from mf_lpr_ros.params import SearchParams
@@ -30,6 +31,16 @@ _CURVATURE_TO_VARIANCE = 0.1
 _MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
 _REPORTED_CANDIDATES = 5
 _EXPANDED_LEADERS = 16
+
+
+def _norm_under(image: np.ndarray, mask: np.ndarray, di: int, dj: int) -> float:
+    """Norm of image over the cells mask covers once moved by (di, dj): the part of a reference
+    a query's footprint overlaps at that alignment (correlation index: q(x) with r(x + d))."""
+    height, width = image.shape
+    rows = slice(max(0, -di), min(height, height - di))
+    cols = slice(max(0, -dj), min(width, width - dj))
+    shifted = image[rows.start + di:rows.stop + di, cols.start + dj:cols.stop + dj]
+    return float(np.sqrt(np.sum(np.square(shifted, dtype=np.float64)[mask[rows, cols]])))
 
 
 @dataclass
@@ -89,6 +100,11 @@ class MatchedFilterIndex:
             self.covered_window = np.ones((self.params.size,) * 2, dtype=bool)
         self._map_offset = np.full(2, float(reference_map.metadata.get("sensor_offset_m", 0.0)))
         self._query_offset = np.zeros(2)
+        self._query_seen: np.ndarray | None = None
+        # A rendered reference is a complete view; only a query's own view holds evidence.
+        self.observed_queries = search.query_footprint == "observed" or (
+            search.query_footprint == "auto"
+            and reference_map.metadata.get("kind") == GLOBAL_MAP_KIND)
         low_cell = self.params.voxel_size * self.params.pool
         self.low_shift = min(math.ceil(search.max_shift_m / low_cell), self.params.low_size - 1)
         self.high_shift = min(math.ceil(search.max_shift_m / self.params.voxel_size),
@@ -151,6 +167,7 @@ class MatchedFilterIndex:
         """
         with self._query_lock:
             self._query_offset = np.full(2, float(sensor_offset_m))
+            self._query_seen = self._seen(occupancy)
             return self._query(occupancy, n_active)
 
     def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
@@ -283,9 +300,11 @@ class MatchedFilterIndex:
         n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
         if self.prefilter is None or top_k <= 0 or n_refs <= top_k:
             return np.arange(n_refs)
-        low = pooled_weights(rotate_occupancy(occupancy, self.global_angles[:1]),
-                             self.params.unoccupied_weight, self.params.pool,
-                             self._query_covered(self.global_angles[:1]))
+        with self._query_lock:
+            self._query_seen = self._seen(occupancy)
+            low = pooled_weights(rotate_occupancy(occupancy, self.global_angles[:1]),
+                                 self.params.unoccupied_weight, self.params.pool,
+                                 self._query_covered(self.global_angles[:1]))
         return self._candidates(low[0], n_refs, top_k)
 
     def _candidates(self, low_query: np.ndarray, n_refs: int, top_k: int) -> np.ndarray:
@@ -305,7 +324,8 @@ class MatchedFilterIndex:
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         w = self.params.unoccupied_weight
         angles = global_angle + self.local_offsets
-        queries = weighted(rotate_occupancy(occupancy, angles), w, self._query_covered(angles))
+        covered = self._query_covered(angles)
+        queries = weighted(rotate_occupancy(occupancy, angles), w, covered)
         reference_image = weighted(self.map.occupancy(reference), w, self.covered)
         surface = self._coarse_to_fine(queries, reference_image)
         reference_norm = float(np.linalg.norm(reference_image))
@@ -313,14 +333,31 @@ class MatchedFilterIndex:
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
         raw = float(surface[a, row, col])
         query_norm = float(np.linalg.norm(queries[a]))
+        if self._query_seen is not None:
+            # The cosine over the cells the query saw: the reference beyond them is unknown
+            # to the query, not a mismatch.
+            reference_norm = _norm_under(reference_image, covered[a], row - self.high_shift,
+                                         col - self.high_shift)
         confidence = raw / max(query_norm * reference_norm, 1e-9)
         return _LocalPeak(reference=reference, score=raw / normaliser,
                           confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))
 
+    def _seen(self, occupancy: np.ndarray) -> np.ndarray | None:
+        """The query's own footprint when queries are matched by what they observed
+        (search.query_footprint): the cells it has seen, within the map's footprint; else None
+        (the map's footprint)."""
+        if not self.observed_queries:
+            return None
+        seen = observed_cells(occupancy)
+        return seen if self.covered is None else seen & self.covered
+
     def _query_covered(self, angles: np.ndarray) -> np.ndarray | None:
-        """The footprint of the query turned by each angle: a field-of-view wedge turns with
-        the sensor; the disc and the square window do not."""
+        """The footprint of the query turned by each angle: a field-of-view wedge and the
+        cells the query has seen turn with the sensor; the disc and the square window do
+        not."""
+        if self._query_seen is not None:
+            return rotate_occupancy(self._query_seen, angles) & self.covered_window
         if self.covered is None or not turns_with_sensor(self.params):
             return self.covered
         return rotate_occupancy(self.covered, angles) & self.covered_window

@@ -27,13 +27,11 @@ from scipy import ndimage
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.descriptor import describe_points, one_point_per_voxel
-from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, read_global_cloud
 from mf_lpr_ros.progress import progress_bar
-
-GLOBAL_MAP_KIND = "global_map_grid"
 
 
 @dataclass(frozen=True)

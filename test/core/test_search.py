@@ -208,3 +208,56 @@ def test_pixel_centred_sensor_offset_is_corrected(offset_m, worst_m):
         assert max(errors) < worst_m
     else:
         assert min(errors) > 0.3
+
+
+def _wedge(points, half_width_deg=35.0):
+    """What a forward-looking sensor (a Livox Avia's ~70 degrees) returns of a scan."""
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    return points[np.abs(azimuth) <= half_width_deg]
+
+
+def test_observed_cells_are_the_directions_a_narrow_scan_saw(world):
+    from mf_lpr_ros.core.descriptor import observed_cells
+
+    points, _ = scan_world(world, 3.0, -2.0, 0.4, np.random.default_rng(3))
+    full = describe_points(points, PARAMS)
+    assert observed_cells(full).all()                     # all round: every cell counts
+    narrow = observed_cells(describe_points(_wedge(points), PARAMS))
+    centre = PARAMS.size // 2
+    ahead, behind = narrow[centre, centre + 5:], narrow[centre, :centre - 5]
+    assert ahead.all() and not behind.any()
+    assert 0.1 < narrow.mean() < 0.4                       # ~70 degrees of 360, and a margin
+
+
+def _rendered_map(world):
+    """References as a global-map grid holds them: complete 360-degree views, marked as a grid."""
+    reference_map = ReferenceMap(PARAMS, metadata={"kind": "global_map_grid"})
+    rng = np.random.default_rng(4)
+    for i, (x, y) in enumerate([(0, 0), (6, 0), (0, 6), (-6, 0), (0, -6), (6, 6)]):
+        points, pose = scan_world(world, x, y, 0.0, rng, dropout=0.0)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+                             float(i), i)
+    return reference_map
+
+
+@pytest.mark.parametrize("query_footprint, observed", [("auto", True), ("observed", True),
+                                                       ("window", False)])
+def test_a_grid_map_matches_queries_by_what_they_observed(world, query_footprint, observed):
+    reference_map = _rendered_map(world)
+    index = MatchedFilterIndex(reference_map, SearchParams(query_footprint=query_footprint))
+    assert index.observed_queries is observed
+    points, _ = scan_world(world, 5.6, 0.3, 0.2, np.random.default_rng(5))
+    result = index.query(describe_points(_wedge(points), PARAMS))
+    if observed:
+        # The wedge's unseen cells no longer count as free space against the complete view.
+        window = MatchedFilterIndex(reference_map, SearchParams(query_footprint="window")).query(
+            describe_points(_wedge(points), PARAMS))
+        assert result.confidence > window.confidence + 0.05
+        assert result.reference_index == 1
+        assert np.hypot(result.pose[0] - 5.6, result.pose[1] - 0.3) < 0.5
+
+
+def test_maps_of_scans_keep_the_window_by_default(synthetic_map):
+    assert not MatchedFilterIndex(synthetic_map, SearchParams()).observed_queries
+    assert MatchedFilterIndex(synthetic_map,
+                              SearchParams(query_footprint="observed")).observed_queries

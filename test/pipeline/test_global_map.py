@@ -6,14 +6,13 @@ import pytest
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_points
-from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw, wrap_angle
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, accumulate, read_global_cloud, write_pcd
 from mf_lpr_ros.pipeline.global_map import (
-    GLOBAL_MAP_KIND,
     RenderParams,
     build_global_map,
     ground_grid,

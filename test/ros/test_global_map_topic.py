@@ -3,8 +3,8 @@
 import numpy as np
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.pipeline.global_map import GLOBAL_MAP_KIND, RenderParams
+from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
+from mf_lpr_ros.pipeline.global_map import RenderParams
 
 CONFIG = preset("kitti")
 SIM_RENDER = RenderParams(elevation_deg=(-15.0, 15.0))
