@@ -9,17 +9,22 @@ A match is published when, in this order (cheap tests first, each only on what p
 3. geometric verification, where clouds exist and search.verify_fitness > 0: ICP fitness
    against the reference's stored cloud;
 4. odometry consistency, where the scans' odometry is known and
-   search.consistency_min_support > 0: earlier candidates from the last consistency_window_m
-   of travel must imply the same map-to-odometry alignment. A false match is a one-off; a true
-   revisit repeats along the path, each match agreeing with the odometry between them.
+   search.consistency_min_support > 0: other candidates within consistency_window_m of travel
+   must imply the same map-to-odometry alignment. A false match is a one-off; a true revisit
+   repeats along the path, each match agreeing with the odometry between them.
+
+Agreement is symmetric: a candidate that lacked support when it came is confirmed as soon as
+enough later candidates agree with it (Verdict.confirms names it to the caller, who publishes
+it then: a pose graph takes a closure late as well as on time). So the first matches of a
+revisit are published too, on the same evidence as the ones after them.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
@@ -36,6 +41,7 @@ class Verdict:
     reason: str
     fitness: float = math.nan
     support: int = -1
+    confirms: list[Any] = field(default_factory=list)
 
     @property
     def candidate(self) -> bool:
@@ -43,16 +49,26 @@ class Verdict:
         return self.support >= 0
 
 
+def confirmed_later(verdict: Verdict) -> Verdict:
+    """An earlier candidate's verdict once later candidates confirmed it."""
+    return Verdict(True, "accepted: confirmed by later matches", verdict.fitness,
+                   verdict.support)
+
+
 @dataclass
 class _Candidate:
     odometry: np.ndarray
     estimate: np.ndarray
     travelled_m: float
+    key: Any
+    support: int
+    confirmed: bool
 
 
 class OdometryConsistency:
-    """Counts the earlier candidates whose implied pose, carried along the odometry to the
-    current query, agrees with the current estimate (SearchParams.consistency_*)."""
+    """Counts the candidates whose implied poses, carried along the odometry between them,
+    agree (SearchParams.consistency_*): each new candidate with the earlier ones in the window,
+    and each earlier one gains the new one's agreement."""
 
     def __init__(self, search: SearchParams) -> None:
         self.search = search
@@ -70,11 +86,14 @@ class OdometryConsistency:
         while self._candidates and self.travelled_m - self._candidates[0].travelled_m > window:
             self._candidates.popleft()
 
-    def support(self, odometry: np.ndarray, estimate: np.ndarray) -> int:
-        """Agreeing earlier candidates; the current one is then remembered as a candidate."""
+    def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
+                ) -> tuple[int, list[Any]]:
+        """(earlier candidates agreeing with this one, keys of the earlier unconfirmed ones
+        that this agreement confirms); the current one is then remembered as a candidate."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
-        count = 0
+        needed = self.search.consistency_min_support
+        agreeing: list[_Candidate] = []
         if self._candidates:
             earlier_odometry = np.stack([c.odometry for c in self._candidates])
             earlier_estimate = np.stack([c.estimate for c in self._candidates])
@@ -84,11 +103,19 @@ class OdometryConsistency:
                                        relative_planar(earlier_odometry, odometry))
             position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
             yaw_gap = np.degrees(np.abs(wrap_angle(predicted[:, 2] - estimate[2])))
-            count = int(np.count_nonzero(
-                separated & (position_gap <= self.search.consistency_tolerance_m)
-                & (yaw_gap <= self.search.consistency_tolerance_deg)))
-        self._candidates.append(_Candidate(odometry, estimate, self.travelled_m))
-        return count
+            agree = separated & (position_gap <= self.search.consistency_tolerance_m) \
+                & (yaw_gap <= self.search.consistency_tolerance_deg)
+            agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
+        confirmed = []
+        for candidate in agreeing:
+            candidate.support += 1
+            if not candidate.confirmed and candidate.support >= needed:
+                candidate.confirmed = True
+                confirmed.append(candidate.key)
+        count = len(agreeing)
+        self._candidates.append(_Candidate(odometry, estimate, self.travelled_m, key, count,
+                                           count >= needed))
+        return count, confirmed
 
 
 class MatchVerifier:
@@ -106,9 +133,12 @@ class MatchVerifier:
         self.consistency = OdometryConsistency(search)
 
     def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,
-               fitness_of: Callable[[MatchResult], float] | None = None) -> Verdict:
+               fitness_of: Callable[[MatchResult], float] | None = None,
+               key: Any = None) -> Verdict:
         """The verdict on one query's match (None: nothing to match against). fitness_of runs
-        the geometric verification (ICP) and is called only when the cheap tests pass."""
+        the geometric verification (ICP) and is called only when the cheap tests pass. key
+        names this query to later verdicts: Verdict.confirms lists the keys of earlier
+        candidates that this match's agreement confirms (publish them now)."""
         if self.consistency_active:
             if odometry is None:
                 raise ValueError("odometry consistency is on (search.consistency_min_support > "
@@ -139,9 +169,9 @@ class MatchVerifier:
                                       f"{search.verify_fitness}", fitness)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
-        support = self.consistency.support(odometry, match.pose)
+        support, confirms = self.consistency.support(odometry, match.pose, key)
         if support < search.consistency_min_support:
             return Verdict(False, f"odometry consistency: {support} earlier match(es) agree, "
                                   f"consistency_min_support is {search.consistency_min_support}",
-                           fitness, support)
-        return Verdict(True, "accepted", fitness, support)
+                           fitness, support, confirms)
+        return Verdict(True, "accepted", fitness, support, confirms)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,7 +33,8 @@ from mf_lpr_ros.pipeline.mapping import described_scan, prepared_points
 class Retrieval:
     """A method's answer for one query: the reference (position in the reference list, -1 for
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
-    the method would publish it as a loop closure at its defaults."""
+    the method would publish it as a loop closure at its defaults; confirms: earlier queries
+    (their order among this method's queries) it would now publish, confirmed late."""
 
     reference: int
     pose: np.ndarray
@@ -42,6 +43,7 @@ class Retrieval:
     ms_global: float
     ms_local: float = 0.0
     published: bool = False
+    confirms: list[int] = field(default_factory=list)
 
 
 class MatchedFilterMethod:
@@ -66,6 +68,8 @@ class MatchedFilterMethod:
         reference_map = ReferenceMap(self.config.descriptor)
         add_references(reference_map, descriptors)
         self._index = MatchedFilterIndex(reference_map, self.config.search)
+        self._verifier = MatchVerifier(self.config.search)
+        self._queries = 0
 
     def query(self, descriptor: DescribedScan, n_active: int, odometry: np.ndarray
               ) -> Retrieval:
@@ -75,9 +79,11 @@ class MatchedFilterMethod:
         if descriptor.cloud is not None and self._index.map.has_clouds:
             def geometric(found):
                 return refine_match(found, descriptor.cloud, self._index.map).fitness
-        verdict = self._verifier.verify(match, odometry, geometric)
+        verdict = self._verifier.verify(match, odometry, geometric, key=self._queries)
+        self._queries += 1
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
-                         match.timings_ms["global"], match.timings_ms["local"], verdict.accepted)
+                         match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
+                         verdict.confirms)
 
 
 class ScanContextMethod:

@@ -199,6 +199,8 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             ms_descriptor=descriptor_ms,
             ms_global=retrieval.ms_global,
             ms_local=retrieval.ms_local))
+        for earlier in retrieval.confirms:
+            records[earlier].published = True
     return records
 
 

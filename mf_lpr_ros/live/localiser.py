@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,10 +24,13 @@ from mf_lpr_ros.live.pose_buffer import PairedScan
 from mf_lpr_ros.optional import require
 from mf_lpr_ros.params import SearchParams
 
+_UNCONFIRMED_KEPT = 1000
+
 
 @dataclass
 class LiveMatch:
-    """One localisation attempt on a live scan."""
+    """One localisation attempt on a live scan. confirms: earlier attempts whose matches this
+    one's agreement confirmed (now accepted; publish their closures late)."""
 
     stamp: float
     match: MatchResult | None
@@ -41,6 +44,7 @@ class LiveMatch:
     timings_ms: dict[str, float] = field(default_factory=dict)
     described_from: str = "single scan"
     window_complete: bool = True
+    confirms: list["LiveMatch"] = field(default_factory=list)
 
 
 class Localiser:
@@ -78,6 +82,9 @@ class Localiser:
         odometry_known = mode == "loop_closure" if odometry_known is None else odometry_known
         self.verifier = MatchVerifier(config.search, min_score=min_score,
                                       odometry_known=odometry_known)
+        # Candidates that may still be confirmed by later ones, by stamp (bounded: far more
+        # than odometry consistency's window holds).
+        self._unconfirmed: OrderedDict[float, LiveMatch] = OrderedDict()
         self.verify = config.search.verify_fitness > 0
         if self.verify:
             # Imported now (about a second) rather than at the first match, failing at start-up.
@@ -148,14 +155,31 @@ class Localiser:
         odometry = planar(pose) if pose is not None and self.verifier.consistency_active \
             else None
         verdict = self.verifier.verify(
-            match, odometry, lambda found: refine_match(found, points, self.map).fitness)
+            match, odometry, lambda found: refine_match(found, points, self.map).fitness,
+            key=stamp)
         if match is None:
             return LiveMatch(stamp, None, False, verdict.reason, descriptor_ms, n_active,
                              described_from=described_from, window_complete=complete)
         timings = {"descriptor": descriptor_ms, **match.timings_ms}
-        return LiveMatch(stamp, match, verdict.accepted, verdict.reason, descriptor_ms, n_active,
-                         float(self.map.stamps[match.reference_index]), verdict.fitness,
-                         verdict.support, timings, described_from, complete)
+        result = LiveMatch(stamp, match, verdict.accepted, verdict.reason, descriptor_ms,
+                           n_active, float(self.map.stamps[match.reference_index]),
+                           verdict.fitness, verdict.support, timings, described_from, complete)
+        result.confirms = self._confirmed(verdict.confirms)
+        if verdict.candidate and not verdict.accepted:
+            self._unconfirmed[stamp] = result
+            while len(self._unconfirmed) > _UNCONFIRMED_KEPT:
+                self._unconfirmed.popitem(last=False)
+        return result
+
+    def _confirmed(self, stamps: list[float]) -> list[LiveMatch]:
+        """The earlier candidates these stamps name, now accepted."""
+        confirmed = []
+        for stamp in stamps:
+            earlier = self._unconfirmed.pop(stamp, None)
+            if earlier is not None:
+                earlier.accepted, earlier.reason = True, "accepted: confirmed by later matches"
+                confirmed.append(earlier)
+        return confirmed
 
     def reference_pose(self, index: int) -> np.ndarray:
         return np.array(self.map.poses[index])

@@ -13,7 +13,7 @@ from mf_lpr_ros.core.pose import planar, planar_error
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import SubmapWindow
-from mf_lpr_ros.core.verification import MatchVerifier, Verdict
+from mf_lpr_ros.core.verification import MatchVerifier, Verdict, confirmed_later
 from mf_lpr_ros.datasets import Sequence
 from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.pipeline.mapping import describe_scan, prepared_points
@@ -71,7 +71,10 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
 
             def geometric(found):
                 return refine_match(found, points, reference_map).fitness
-        verdict = verifier.verify(match, planar(scan.pose) if posed else None, geometric)
+        verdict = verifier.verify(match, planar(scan.pose) if posed else None, geometric,
+                                  key=len(outcomes))
+        for earlier in verdict.confirms:
+            outcomes[earlier].verdict = confirmed_later(outcomes[earlier].verdict)
         if icp and np.isnan(verdict.fitness) and geometric is not None:
             geometric(match)
         posed = scan.pose is not None and np.isfinite(scan.pose).all()

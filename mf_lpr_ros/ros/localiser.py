@@ -16,7 +16,8 @@ passes verification, and the pose is returned in the reply (with a submap window
 scan whose window is complete, or at request_timeout_s the best partial one; the reply's
 described_from says which); continuous (the default in
 loop_closure mode): every accepted scan. Loop closures are published for every accepted scan
-in either mode.
+in either mode, and for an earlier scan when later matches confirm its match (odometry
+consistency is symmetric: core/verification.py), with that scan's stamp.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,9 +60,11 @@ from mf_lpr_ros.ros.messages import (
     loop_closure_message,
     match_markers,
     relocalisation_message,
+    seconds_to_stamp,
 )
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
+_HEADER_STAMPS_KEPT = 2000
 # Reliable (AMCL's /initialpose subscription) and transient local: a late subscriber still gets
 # the last pose.
 LATCHED_POSE_QOS = latched_qos()
@@ -111,6 +114,8 @@ class LocaliserLogic(LidarNodeMixin):
         self._inputs: list = []
         self._diagnostics_timer = None
         self._wake = threading.Condition()
+        # Header stamps of searched scans, to publish a closure confirmed later exactly.
+        self._header_stamps: OrderedDict[float, Time] = OrderedDict()
 
     def configure(self, create_publisher) -> None:
         """Load the map and build the search; create_publisher is the node's publisher factory
@@ -312,7 +317,14 @@ class LocaliserLogic(LidarNodeMixin):
         self.last = result
         self.counters["scans_searched"] += 1
         self.searched_stamps.append(scan.seconds)
+        self._header_stamps[scan.seconds] = scan.stamp
+        while len(self._header_stamps) > _HEADER_STAMPS_KEPT:
+            self._header_stamps.popitem(last=False)
         self.result_latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
+        for earlier in result.confirms:
+            self._publish_closure(self._header_stamps.get(earlier.stamp) or
+                                  seconds_to_stamp(earlier.stamp), earlier)
+            self.counters["closures_confirmed_later"] += 1
         if result.match is None:
             return
         match = result.match
@@ -333,18 +345,24 @@ class LocaliserLogic(LidarNodeMixin):
             self._publish_pose(scan, match, world_T_base)
         for request in answering:
             request.answer.set_result(answer)
-        if self.loop_closure_pub is not None:
-            self.loop_closure_pub.publish(loop_closure_message(
-                scan.stamp, match.reference_index, result.reference_stamp,
-                relative_transform(match), match.relative_covariance, match.score,
-                match.confidence))
-        if self.lio_sam_pub is not None:
-            self.lio_sam_pub.publish(lio_sam_loop_message(scan.stamp, result.reference_stamp))
+        self._publish_closure(scan.stamp, result)
         if self.settings.publish_markers:
             self.markers_pub.publish(match_markers(scan.stamp, self.map_frame_id, world_T_base,
                                                    reference_pose, True))
         self.counters["matches_accepted"] += 1
         self.latencies_ms.append((time.perf_counter() - scan.received) * 1e3)
+
+    def _publish_closure(self, stamp: Time, result: LiveMatch) -> None:
+        """The loop closure of an accepted match, in every format asked for."""
+        self.counters["closures_published"] += 1
+        match = result.match
+        if self.loop_closure_pub is not None:
+            self.loop_closure_pub.publish(loop_closure_message(
+                stamp, match.reference_index, result.reference_stamp,
+                relative_transform(match), match.relative_covariance, match.score,
+                match.confidence))
+        if self.lio_sam_pub is not None:
+            self.lio_sam_pub.publish(lio_sam_loop_message(stamp, result.reference_stamp))
 
     def _publish_pose(self, scan: _PendingScan, match, world_T_base: np.ndarray) -> None:
         """relocalisation, then the ranked hypotheses and their confidences."""

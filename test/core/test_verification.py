@@ -86,6 +86,31 @@ def test_odometry_consistency_accepts_repeated_agreement_and_rejects_a_one_off()
     assert verdicts[5].support == 5 and verdicts[7].support == 6
 
 
+def test_later_agreement_confirms_the_first_matches_of_a_revisit_but_not_a_one_off():
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2))
+    odometry = _drive(12)
+    truth = compose_planar(np.array([100.0, -20.0, 0.7]), odometry)
+    confirms = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        estimate = pose + [15.0, 4.0, 0.5] if index in (0, 6) else pose + [0.2, -0.1, 0.01]
+        match = _match(estimate) if index != 3 else None       # 3: no reference found
+        confirms.append(verifier.verify(match, odo, key=f"scan {index}").confirms)
+    # The revisit's first true matches (1, 2) lack support when they come (none, then one);
+    # the third (4) agrees with both and confirms them, once. The false ones (0, 6) agree with
+    # nothing and are never confirmed.
+    assert confirms[4] == ["scan 1", "scan 2"]
+    assert all(keys == [] for index, keys in enumerate(confirms) if index != 4)
+
+
+def test_a_run_of_two_confirms_neither():
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2))
+    odometry = _drive(2)
+    verdicts = [verifier.verify(_match(pose + [10.0, 0.0, 0.0]), pose, key=k)
+                for k, pose in enumerate(odometry)]
+    assert verdicts[1].support == 1 and not verdicts[1].accepted
+    assert verdicts[0].confirms == [] and verdicts[1].confirms == []
+
+
 def test_a_stationary_robot_repeating_a_false_match_gets_no_support():
     verifier = MatchVerifier(SearchParams(consistency_min_support=2,
                                           consistency_min_separation_m=1.0))

@@ -100,22 +100,25 @@ def test_loop_closure_localiser_only_searches_old_enough_references(world):
     localiser = Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="loop_closure",
                           exclude_recent_s=10.0)
     trajectory = route(20)
-    results = []
+    results, accepted_on_arrival = [], []
     for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:3]])):
         points, pose = scan_world(world, x, y, yaw, rng)
         results.append(localiser.localise(float(index), points, pose))
+        accepted_on_arrival.append(results[-1].accepted)
         localiser.add_reference(PairedScan(index, float(index), points, pose))
     assert results[0].match is None and results[0].reason == "no reference to search yet"
     assert all(r.references_searched == max(0, i - 10 + 1) for i, r in enumerate(results))
     # The revisit's first two matches are right but wait for odometry support (two agreeing
-    # earlier matches); the third has it.
+    # earlier matches); the third has it, and its agreement confirms the first two.
     for index in (20, 21, 22):
         revisit = results[index]
         assert revisit.match.reference_index == index - 20
         assert np.hypot(*(revisit.match.pose[:2] - trajectory[index - 20][:2])) < 0.5
         assert revisit.support == index - 20
-    assert not results[21].accepted and "odometry consistency" in results[21].reason
-    assert results[22].accepted
+    assert accepted_on_arrival[20:] == [False, False, True]
+    assert results[22].confirms == [results[20], results[21]]
+    assert all(r.accepted and "confirmed by later" in r.reason for r in results[20:22])
+    assert not any(r.confirms for r in results[:22])
 
 
 def test_localiser_refuses_a_map_with_other_parameters(world):
