@@ -120,3 +120,25 @@ def test_the_checks_catch_a_renamed_file_and_parameter(tmp_path):
     assert "search.top_k" not in set(flat_parameters(preset("default")))
     assert _ROS_ARGUMENT.findall("--ros-args -p map_file:=x") == ["map_file"]
     assert "map_file" not in _node_parameter_names()
+
+
+LAUNCH_NODES = {"localiser.launch.py": "localiser",
+                "localiser_managed.launch.py": "managed_localiser",
+                "map_builder.launch.py": "map_builder"}
+
+
+@pytest.mark.parametrize("launch_file, node", sorted(LAUNCH_NODES.items()))
+def test_launch_arguments_default_to_the_node_parameters(launch_file, node):
+    """A launch argument named as a node parameter starts from that parameter's default, so a
+    changed default cannot drift between the node and its launch file."""
+    tree = ast.parse((REPOSITORY / "launch" / launch_file).read_text())
+    arguments = next(ast.literal_eval(statement.value) for statement in tree.body
+                     if isinstance(statement, ast.Assign)
+                     and getattr(statement.targets[0], "id", "") == "ARGUMENTS")
+    settings_class, _ = NODE_SETTINGS[node]
+    defaults = {p.name: p.default for p in settings_class.PARAMETERS}
+    defaults[PRESET.name] = PRESET.default
+    shared = set(arguments) & set(defaults)
+    assert {"preset", "map_path", "pose_source"} <= shared
+    assert {name: arguments[name][0] for name in shared} == \
+        {name: str(defaults[name]) for name in shared}
