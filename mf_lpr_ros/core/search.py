@@ -345,11 +345,13 @@ class MatchedFilterIndex:
 
     def _seen(self, occupancy: np.ndarray) -> np.ndarray | None:
         """The query's own footprint when queries are matched by what they observed
-        (search.query_footprint): the cells it has seen, within the map's footprint; else None
-        (the map's footprint)."""
+        (search.query_footprint) and it did not see all round: the cells it has seen, within
+        the map's footprint; else None (the map's footprint, exactly as without the option)."""
         if not self.observed_queries:
             return None
         seen = observed_cells(occupancy)
+        if seen.all():
+            return None
         return seen if self.covered is None else seen & self.covered
 
     def _query_covered(self, angles: np.ndarray) -> np.ndarray | None:

@@ -222,6 +222,9 @@ def test_observed_cells_are_the_directions_a_narrow_scan_saw(world):
     points, _ = scan_world(world, 3.0, -2.0, 0.4, np.random.default_rng(3))
     full = describe_points(points, PARAMS)
     assert observed_cells(full).all()                     # all round: every cell counts
+    grid = MatchedFilterIndex(_rendered_map(world), SearchParams(query_footprint="observed"))
+    window = MatchedFilterIndex(_rendered_map(world), SearchParams(query_footprint="window"))
+    assert grid.query(full).confidence == window.query(full).confidence
     narrow = observed_cells(describe_points(_wedge(points), PARAMS))
     centre = PARAMS.size // 2
     ahead, behind = narrow[centre, centre + 5:], narrow[centre, :centre - 5]
