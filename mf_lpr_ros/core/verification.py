@@ -49,10 +49,12 @@ class Verdict:
         return self.support >= 0
 
 
+CONFIRMED_LATER = "accepted: confirmed by later matches"
+
+
 def confirmed_later(verdict: Verdict) -> Verdict:
     """An earlier candidate's verdict once later candidates confirmed it."""
-    return Verdict(True, "accepted: confirmed by later matches", verdict.fitness,
-                   verdict.support)
+    return Verdict(True, CONFIRMED_LATER, verdict.fitness, verdict.support)
 
 
 @dataclass

@@ -57,7 +57,9 @@ class MatchedFilterMethod:
         self.config = config
         self.submap_window = SubmapWindow.for_descriptor(config.descriptor)
         self._index: MatchedFilterIndex | None = None
-        self._verifier = MatchVerifier(config.search)
+        # Made with the index: verification state (odometry consistency) belongs to one run.
+        self._verifier: MatchVerifier | None = None
+        self._queries = 0
 
     def describe(self, scan: Scan, *, reference: bool) -> DescribedScan:
         keep_cloud = self.config.search.verify_fitness > 0 and scan.points is not None

@@ -17,7 +17,7 @@ from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
-from mf_lpr_ros.core.verification import MatchVerifier
+from mf_lpr_ros.core.verification import CONFIRMED_LATER, MatchVerifier
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
@@ -177,7 +177,7 @@ class Localiser:
         for stamp in stamps:
             earlier = self._unconfirmed.pop(stamp, None)
             if earlier is not None:
-                earlier.accepted, earlier.reason = True, "accepted: confirmed by later matches"
+                earlier.accepted, earlier.reason = True, CONFIRMED_LATER
                 confirmed.append(earlier)
         return confirmed
 
