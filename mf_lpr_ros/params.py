@@ -146,7 +146,17 @@ class SearchParams:
     prefilter_expand_m: the prefilter's 16 best references bring along every reference within
         this distance of them (map positions): the same place seen from a few metres away often
         scores just below them in the exact search, and the prefilter ranks such neighbours
-        less consistently. 0 disables.
+        less consistently. At most prefilter_top_k references are added, the nearest to a
+        leader first: along a trajectory that bound is rarely reached (KITTI 00: 30-50 added),
+        on a grid rendered 2 m apart it keeps ~450 neighbours from multiplying the search's
+        cost. 0 disables.
+    reference_spectra: where the global stage's reference spectra live. "memory": every
+        reference's, computed when the index is built (~17 KB a reference at the defaults).
+        "on_demand": only the prefilter's features are kept (~2.7 KB a reference, cached beside
+        a map loaded from a file, so a large map starts in seconds), and the candidates'
+        spectra are computed from the map's stored occupancy for each query (~5 ms for 100
+        candidates); needs prefilter_top_k > 0. Both give the same matches. "auto" (default):
+        memory up to 50,000 references when the index is made, on demand above.
     backend: where the search's array work runs. "numpy" (CPU); "torch" (PyTorch: the CUDA
         GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
         PyTorch is installed and sees a CUDA device, else numpy.
@@ -202,6 +212,7 @@ class SearchParams:
     chunk_size: int = 256
     prefilter_top_k: int = 64
     prefilter_expand_m: float = 6.0
+    reference_spectra: str = "auto"
     backend: str = "auto"
     verify_fitness: float = 0.0
     distinct_radius_m: float = 10.0
@@ -234,6 +245,13 @@ class SearchParams:
                  self.prefilter_top_k)
         require_parameter(self.prefilter_expand_m >= 0, "prefilter_expand_m", ">= 0",
                  self.prefilter_expand_m)
+        require_parameter(self.reference_spectra in ("auto", "memory", "on_demand"),
+                          "reference_spectra", "'auto', 'memory' or 'on_demand'",
+                          self.reference_spectra)
+        require_parameter(self.reference_spectra != "on_demand" or self.prefilter_top_k > 0,
+                          "reference_spectra", "'auto' or 'memory' when prefilter_top_k is 0 "
+                          "(the exhaustive search reads every reference)",
+                          self.reference_spectra)
         require_parameter(self.backend in ("auto", "numpy", "torch"), "backend",
                  "'auto', 'numpy' or 'torch'", self.backend)
         require_parameter(0.0 <= self.verify_fitness <= 1.0, "verify_fitness", "in [0, 1]",

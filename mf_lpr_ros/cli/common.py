@@ -30,7 +30,8 @@ def add_scheduler(parser: argparse.ArgumentParser) -> None:
                         "(a cluster of processes on this machine) or a scheduler ADDRESS "
                         "(tcp://host:8786); default: serial")
     parser.add_argument("--workers", type=int, default=2,
-                        help="with --scheduler local: worker processes (default 2)")
+                        help="with --scheduler local: worker processes; with build-map "
+                        "--global-map: rendering processes (default 2)")
 
 
 def add_common(parser: argparse.ArgumentParser) -> None:

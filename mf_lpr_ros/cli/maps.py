@@ -69,9 +69,11 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
     trajectory = read_trajectory(args.trajectory) if args.trajectory else None
     render = RenderParams(spacing_m=args.spacing_m or RenderParams.spacing_m,
                           sensor_height_m=args.sensor_height_m,
-                          horizontal_fov_deg=args.horizontal_fov_deg)
+                          horizontal_fov_deg=args.horizontal_fov_deg,
+                          reach_m=args.reach_m)
     reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
-                                     render=render, progress=not args.quiet)
+                                     render=render, progress=not args.quiet,
+                                     workers=args.workers)
     reference_map.save(args.out)
     area = reference_map.metadata["grid_area_km2"]
     print(f"wrote {args.out}: {len(reference_map)} references rendered from {args.global_map} "
@@ -129,6 +131,10 @@ def register(commands: argparse._SubParsersAction) -> None:
                        help="with --global-map: the sensor's horizontal field of view; below "
                             "360 (e.g. 70 for a Livox Avia) references face several headings, "
                             "each with only its wedge")
+    build.add_argument("--reach-m", type=float,
+                       help="with --global-map: render a position only when structure lies "
+                            "within this distance (default: the descriptor's half width; inf: "
+                            "no limit), so open fields do not become references")
     build.add_argument("--out", required=True, help="map file to write (atomically)")
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",

@@ -73,6 +73,34 @@ class ReferenceMap:
         self.cloud_points: np.ndarray | None = None
         self.cloud_offsets: np.ndarray | None = None
         self._pending: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray | None]] = []
+        # Set by load: the file, its header checksum (which changes with any content, so files
+        # derived from the map, the prefilter cache, know which map they belong to) and how
+        # many references the file holds (later appends are not in it).
+        self.source_path: Path | None = None
+        self.content_key: str | None = None
+        self.source_references = 0
+
+    @classmethod
+    def from_arrays(cls, params: DescriptorParams, occupancy_bits: np.ndarray, poses: np.ndarray,
+                    stamps: np.ndarray, source_indices: np.ndarray, *, frame_id: str = "map",
+                    metadata: dict[str, Any] | None = None) -> "ReferenceMap":
+        """A map of many references at once (packed occupancy as occupancy_bits holds it):
+        appending a million one by one costs minutes."""
+        reference_map = cls(params, frame_id=frame_id, metadata=metadata)
+        n_bytes = params.size * params.size // 8
+        count = len(stamps)
+        if occupancy_bits.shape != (count, n_bytes) or occupancy_bits.dtype != np.uint8:
+            raise ValueError(f"occupancy_bits must be ({count}, {n_bytes}) uint8, got "
+                             f"{occupancy_bits.shape} {occupancy_bits.dtype}")
+        if poses.shape != (count, 4, 4) or not np.isfinite(poses).all():
+            raise ValueError(f"poses must be ({count}, 4, 4) and finite")
+        if len(source_indices) != count:
+            raise ValueError(f"source_indices must hold {count} entries")
+        reference_map._occupancy_bits = occupancy_bits
+        reference_map._poses = np.asarray(poses, dtype=np.float64)
+        reference_map._stamps = np.asarray(stamps, dtype=np.float64)
+        reference_map._source_indices = np.asarray(source_indices, dtype=np.int64)
+        return reference_map
 
     def __len__(self) -> int:
         self._flush_pending()
@@ -207,19 +235,19 @@ class ReferenceMap:
         # Offsets depend on the header size, which depends on the offsets: iterate to a fixpoint.
         header_bytes = b""
         for _ in range(4):
-            offset = _aligned(_PREAMBLE.size + len(header_bytes))
+            offset = aligned(_PREAMBLE.size + len(header_bytes))
             for name, array in arrays.items():
                 table[name] = {"offset": offset, "dtype": array.dtype.str,
                                "shape": list(array.shape),
-                               "crc32": _crc32(array)}
-                offset = _aligned(offset + array.nbytes)
+                               "crc32": array_crc32(array)}
+                offset = aligned(offset + array.nbytes)
             encoded = json.dumps(header, sort_keys=True).encode()
             if encoded == header_bytes:
                 break
             header_bytes = encoded
         preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes),
                                   zlib.crc32(header_bytes))
-        _write_atomically(path, preamble + header_bytes, arrays, table)
+        write_atomically(path, preamble + header_bytes, arrays, table)
 
     @classmethod
     def load(cls, path: str | Path, *, verify: bool = True) -> "ReferenceMap":
@@ -237,6 +265,9 @@ class ReferenceMap:
             raise MapFileError(f"{path}: {error}") from None
         reference_map = cls(header.params, frame_id=header.frame_id,
                             sensor_frame_id=header.sensor_frame_id, metadata=header.metadata)
+        reference_map.source_path = path
+        reference_map.content_key = f"{header_crc:08x}"
+        reference_map.source_references = len(loaded["stamps"])
         reference_map._occupancy_bits = loaded["occupancy_bits"]
         reference_map._poses = loaded["poses"]
         reference_map._stamps = loaded["stamps"]
@@ -285,13 +316,14 @@ def _map_arrays(path: Path, table: dict[str, ArrayEntry], verify: bool
         else:
             array = np.memmap(path, dtype=entry.dtype, mode="r", offset=entry.offset,
                               shape=entry.shape)
-        if verify and _crc32(array) != entry.crc32:
+        if verify and array_crc32(array) != entry.crc32:
             raise MapFileError(f"corrupt map file (checksum mismatch in {name!r})")
         loaded[name] = array
     return loaded
 
 
-def _aligned(offset: int) -> int:
+def aligned(offset: int) -> int:
+    """offset rounded up to the 64-byte boundary every stored array starts on."""
     return (offset + _ALIGN - 1) // _ALIGN * _ALIGN
 
 
@@ -299,7 +331,8 @@ def _as_bytes(array: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(array).reshape(-1).view(np.uint8)
 
 
-def _crc32(array: np.ndarray) -> int:
+def array_crc32(array: np.ndarray) -> int:
+    """CRC32 of an array's bytes, in blocks (a memory-mapped array is read once)."""
     view = _as_bytes(array)
     crc = 0
     for start in range(0, len(view), _CRC_BLOCK):
@@ -307,8 +340,11 @@ def _crc32(array: np.ndarray) -> int:
     return crc
 
 
-def _write_atomically(path: Path, head: bytes, arrays: dict[str, np.ndarray],
-                      table: dict[str, dict[str, Any]]) -> None:
+def write_atomically(path: Path, head: bytes, arrays: dict[str, np.ndarray],
+                     table: dict[str, dict[str, Any]]) -> None:
+    """Write head, then each array at table[name]["offset"], to a temporary file beside path;
+    fsync it and rename it over path: a crash leaves the old file or the new, never a torn
+    one."""
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_temporaries(path)
     temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")

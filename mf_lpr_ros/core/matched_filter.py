@@ -67,6 +67,11 @@ class SpectralBank(NumpyArrays):
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
 
+    def refill(self, images: np.ndarray) -> None:
+        """Replace every reference by images (n, H, W), keeping the storage."""
+        self._count = 0
+        self.append(images)
+
     def _new_bank(self, capacity: int) -> np.ndarray:
         return np.zeros((self.n_freqs, 2 * self.height, capacity), dtype=np.float32)
 

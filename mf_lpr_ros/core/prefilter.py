@@ -19,6 +19,7 @@ import numpy as np
 from mf_lpr_ros.core.array_ops import NumpyArrays
 
 _MIN_RADIUS_BINS = 1.5
+_SCORED_TOGETHER = 1 << 16
 
 
 class PolarSpectrumIndex(NumpyArrays):
@@ -72,6 +73,19 @@ class PolarSpectrumIndex(NumpyArrays):
         polar /= np.maximum(np.linalg.norm(polar, axis=(1, 2), keepdims=True), 1e-9)
         return np.fft.rfft(polar, axis=2).transpose(0, 2, 1).astype(np.complex64)
 
+    @property
+    def stored_features(self) -> np.ndarray:
+        """(H, n, R) features of every reference, on the host (for prefilter_cache)."""
+        return self._to_host(self._bank[:, : self._count])
+
+    def adopt(self, features: np.ndarray) -> None:
+        """Take (H, n, R) features of the first n references, computed earlier (a memory map
+        stays one: appending copies it into memory)."""
+        if self._count:
+            raise ValueError("adopt needs an empty index")
+        self._bank = self._from_host(features)
+        self._count = features.shape[1]
+
     def append(self, images: np.ndarray) -> None:
         """Add references (n, S, S): the low-resolution weighted descriptors."""
         self._store(self._from_host(np.ascontiguousarray(self.features(images).transpose(1, 0, 2))))
@@ -93,10 +107,19 @@ class PolarSpectrumIndex(NumpyArrays):
         """Best circular correlation over angle shifts of one query image against references
         [0, stop): (stop,) float32 in [-1, 1]."""
         stop = self._count if stop is None else min(stop, self._count)
-        query = self._from_host(self.features(image[None])[0])
-        cross = (self._bank[:, :stop] @ query.conj()[:, :, None])[:, :, 0]
+        query = self._from_host(self.features(image[None])[0]).conj()[:, :, None]
+        if stop <= _SCORED_TOGETHER:
+            return self._to_host(self._best_over_angles(self._bank[:, :stop], query))
+        # Blocks bound the (n, angles) temporaries on maps of a million references.
+        return np.concatenate([
+            self._to_host(self._best_over_angles(
+                self._bank[:, start: min(start + _SCORED_TOGETHER, stop)], query))
+            for start in range(0, stop, _SCORED_TOGETHER)])
+
+    def _best_over_angles(self, features, query):
+        cross = (features @ query)[:, :, 0]
         correlation = cross.real.T @ self._inverse_real + cross.imag.T @ self._inverse_imag
-        return self._to_host(self._amax(correlation, axis=1))
+        return self._amax(correlation, axis=1)
 
     def top(self, image: np.ndarray, k: int, stop: int | None = None) -> np.ndarray:
         """Indices of the k best-ranked references in [0, stop), best first."""

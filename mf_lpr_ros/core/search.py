@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mf_lpr_ros.core.backends import make_backend
 from mf_lpr_ros.core.descriptor import (
@@ -23,7 +24,9 @@ from mf_lpr_ros.core.descriptor import (
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
+from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
 from mf_lpr_ros.params import SearchParams
+from mf_lpr_ros.progress import progress_bar
 
 # Scale from normalised peak curvature to variance: a peak whose score halves one cell away
 # gets a standard deviation of ~0.3 cell before inflation by low confidence.
@@ -31,6 +34,9 @@ _CURVATURE_TO_VARIANCE = 0.1
 _MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
 _REPORTED_CANDIDATES = 5
 _EXPANDED_LEADERS = 16
+# search.reference_spectra "auto": spectra in memory up to this many references (~0.9 GB).
+ON_DEMAND_ABOVE = 50_000
+_INDEX_BLOCKS_WITHOUT_PROGRESS = 16
 
 
 def _norm_under(image: np.ndarray, mask: np.ndarray, di: int, dj: int) -> float:
@@ -125,18 +131,26 @@ class MatchedFilterIndex:
         prepare_rotations(self.params.size, [self.global_angles] +
                           [angle + self.local_offsets for angle in self.global_angles])
         size = self.params.low_size
-        capacity = max(len(reference_map), 1)
-        backend = make_backend(search.backend, size, self.low_shift, capacity,
+        self.spectra_on_demand = search.reference_spectra == "on_demand" or (
+            search.reference_spectra == "auto" and search.prefilter_top_k > 0
+            and len(reference_map) > ON_DEMAND_ABOVE)
+        # On demand, the bank holds one query's candidates at a time.
+        capacity = search.prefilter_top_k if self.spectra_on_demand else len(reference_map)
+        backend = make_backend(search.backend, size, self.low_shift, max(capacity, 1),
                                prefilter=search.prefilter_top_k > 0)
         self.backend = backend.name
         self.bank, self.prefilter = backend.bank, backend.prefilter
         self._correlate_local = backend.correlate_local
         self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
+        self._indexed = 0
+        self._positions: cKDTree | None = None
+        # What became of the prefilter cache beside the map file (on demand only).
+        self.prefilter_cache_status = "not used"
         self.sync()
 
     def __len__(self) -> int:
-        return len(self.bank)
+        return self._indexed
 
     @property
     def nbytes(self) -> int:
@@ -144,16 +158,46 @@ class MatchedFilterIndex:
 
     def sync(self, block: int = 1024) -> int:
         """Index references added to the map since the last call; returns how many."""
-        start, stop = len(self.bank), len(self.map)
-        for first in range(start, stop, block):
+        start, stop = self._indexed, len(self.map)
+        if start == stop:
+            return 0
+        restored = self._restore_prefilter() if start == 0 else 0
+        first_blocks = range(start + restored, stop, block)
+        for first in progress_bar(first_blocks, desc="index references", unit="block",
+                                  enabled=len(first_blocks) > _INDEX_BLOCKS_WITHOUT_PROGRESS):
             last = min(first + block, stop)
-            occupancy = self.map.occupancy(slice(first, last))
-            low = pooled_weights(occupancy, self.params.unoccupied_weight, self.params.pool,
-                                 self.covered)
-            self.bank.append(low)
+            low = self._low_references(slice(first, last))
+            if not self.spectra_on_demand:
+                self.bank.append(low)
             if self.prefilter is not None:
                 self.prefilter.append(low)
+        if start == 0 and not restored and self._caches_prefilter():
+            saved = save_features(cache_path(self.map.source_path), self.map.content_key,
+                                  self.prefilter.stored_features[:, : self.map.source_references])
+            self.prefilter_cache_status = f"{self.prefilter_cache_status}; {saved}"
+        self._indexed = stop
+        self._positions = cKDTree(self.map.poses[:stop, :2, 3])
         return stop - start
+
+    def _low_references(self, references: slice | np.ndarray) -> np.ndarray:
+        return pooled_weights(self.map.occupancy(references), self.params.unoccupied_weight,
+                              self.params.pool, self.covered)
+
+    def _caches_prefilter(self) -> bool:
+        return (self.spectra_on_demand and self.prefilter is not None
+                and self.map.source_path is not None and self.map.source_references > 0)
+
+    def _restore_prefilter(self) -> int:
+        """How many references' prefilter features came from the cache beside the map."""
+        if not self._caches_prefilter():
+            return 0
+        shape = (self.prefilter.n_harmonics, self.map.source_references, self.prefilter.n_radii)
+        features, self.prefilter_cache_status = load_features(
+            cache_path(self.map.source_path), self.map.content_key, shape)
+        if features is None:
+            return 0
+        self.prefilter.adopt(features)
+        return self.map.source_references
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
               sensor_offset_m: float = 0.0) -> MatchResult | None:
@@ -171,7 +215,7 @@ class MatchedFilterIndex:
             return self._query(occupancy, n_active)
 
     def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
-        n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
+        n_refs = len(self) if n_active is None else min(n_active, len(self))
         if n_refs <= 0:
             return None
         started = time.perf_counter()
@@ -181,17 +225,25 @@ class MatchedFilterIndex:
         operator = self.bank.prepare_queries(low_queries)
         prepared = time.perf_counter()
         volume = None
-        if self.prefilter is not None and n_refs > self.search.prefilter_top_k:
+        prefiltered = self.prefilter is not None and n_refs > self.search.prefilter_top_k
+        if prefiltered:
             # global_angles[0] is 0: the unrotated query.
             searched = self._candidates(low_queries[0], n_refs, self.search.prefilter_top_k)
-            prefilter_done = time.perf_counter()
-            scores, volume = self.bank.best_of_subset(operator, searched, self.search.chunk_size)
         else:
             searched = np.arange(n_refs)
-            prefilter_done = time.perf_counter()
+        if self.spectra_on_demand:
+            self.bank.refill(self._low_references(np.sort(searched))[
+                np.argsort(np.argsort(searched))])
+            columns = np.arange(len(searched))
+        else:
+            columns = searched
+        prefilter_done = time.perf_counter()
+        if prefiltered or self.spectra_on_demand:
+            scores, volume = self.bank.best_of_subset(operator, columns, self.search.chunk_size)
+        else:
             scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
         if self.search.score_normalisation == "cosine":
-            scores = scores / np.maximum(self.bank.norms[searched], 1e-6)
+            scores = scores / np.maximum(self.bank.norms[columns], 1e-6)
         n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
         order = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
         order = order[np.argsort(-scores[order], kind="stable")]
@@ -200,15 +252,15 @@ class MatchedFilterIndex:
 
         finalists = order[: self.search.top_n]
         located = (self.bank.peaks(volume, finalists) if volume is not None
-                   else self.bank.locate(operator, searched[finalists]))
+                   else self.bank.locate(operator, columns[finalists]))
         peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
                  for reference, (angle_index, *_) in zip(searched[finalists], located)]
         peaks.sort(key=lambda peak: -peak.score)
         peaks = self._shortest_shift_first(peaks)
         result = self._result(peaks[0], ranked)
         distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
-        nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, operator,
-                                     volume, n_refs)
+        nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, columns,
+                                     operator, volume, n_refs)
         if nearer is not None:
             peak, result = nearer
             peaks = [peak] + [other for other in peaks if other is not peak]
@@ -237,7 +289,7 @@ class MatchedFilterIndex:
 
     def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
                        peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
-                       operator, volume, n_refs: int
+                       columns: np.ndarray, operator, volume, n_refs: int
                        ) -> "tuple[_LocalPeak, MatchResult] | None":
         """The reference nearest the matched pose, aligned, and its match, when it confirms the
         match.
@@ -256,7 +308,8 @@ class MatchedFilterIndex:
             return None
         aligned = [peak for peak in peaks if peak.reference == nearest]
         candidate = aligned[0] if aligned else self._local(
-            occupancy, nearest, self._coarse_angle(nearest, match, searched, operator, volume))
+            occupancy, nearest,
+            self._coarse_angle(nearest, match, searched, columns, operator, volume))
         if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
             return None
         confirmed = self._result(candidate, ranked)
@@ -264,15 +317,15 @@ class MatchedFilterIndex:
             return None
         return candidate, confirmed
 
-    def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray, operator,
-                      volume) -> float:
+    def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray,
+                      columns: np.ndarray, operator, volume) -> float:
         """The global-stage rotation for reference: its own best when the global stage scored
         it, else the one the match's pose implies (snapped to the global angles, whose
         rotation tables are prepared)."""
         column = np.flatnonzero(searched == reference)
         if len(column):
             located = (self.bank.peaks(volume, column) if volume is not None
-                       else self.bank.locate(operator, [reference]))
+                       else self.bank.locate(operator, columns[column]))
             return float(self.global_angles[int(located[0][0])])
         relative = math.degrees(match.pose[2] - planar(self.map.poses[reference])[2])
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
@@ -297,7 +350,7 @@ class MatchedFilterIndex:
         prefilter_top_k = top_k: the prefilter's top_k and their map neighbours (every
         reference when top_k is 0 or covers them all). For measuring what the candidate stage
         loses (benchmarks/bench_candidates.py)."""
-        n_refs = len(self.bank) if n_active is None else min(n_active, len(self.bank))
+        n_refs = len(self) if n_active is None else min(n_active, len(self))
         if self.prefilter is None or top_k <= 0 or n_refs <= top_k:
             return np.arange(n_refs)
         with self._query_lock:
@@ -311,15 +364,21 @@ class MatchedFilterIndex:
         return self._expanded(self.prefilter.top(low_query, top_k, n_refs), n_refs)
 
     def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
-        """searched, then the references near its leaders that it lacks (prefilter_expand_m)."""
+        """searched, then the references near its leaders that it lacks (prefilter_expand_m),
+        at most as many as searched holds, the nearest to a leader first: along a trajectory
+        a leader has a few neighbours, on a grid rendered 2 m apart dozens."""
         radius = self.search.prefilter_expand_m
         if radius <= 0:
             return searched
-        positions = self.map.poses[:n_refs, :2, 3]
-        leaders = positions[searched[:_EXPANDED_LEADERS]]
-        offsets = positions[:, None, :] - leaders[None]
-        near = np.flatnonzero((np.einsum("nlc,nlc->nl", offsets, offsets) <= radius ** 2).any(1))
-        return np.concatenate([searched, np.setdiff1d(near, searched, assume_unique=True)])
+        leaders = self.map.poses[searched[:_EXPANDED_LEADERS], :2, 3]
+        near = np.unique(np.concatenate(
+            [np.asarray(found, dtype=np.int64)
+             for found in self._positions.query_ball_point(leaders, radius)]))
+        near = np.setdiff1d(near[near < n_refs], searched, assume_unique=True)
+        if len(near) > len(searched):
+            distances, _ = cKDTree(leaders).query(self.map.poses[near, :2, 3])
+            near = np.sort(near[np.argsort(distances, kind="stable")[: len(searched)]])
+        return np.concatenate([searched, near])
 
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         w = self.params.unoccupied_weight

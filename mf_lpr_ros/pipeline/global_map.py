@@ -13,20 +13,29 @@ traversable area:
   (RenderParams' angular resolution and vertical field of view), described as a reference
   scan with yaw 0 (the search covers every rotation).
 The cloud is sorted by square tiles into a memory-mapped file, so a window reads only the
-tiles it overlaps and a map of a few km^2 builds on a workstation.
+tiles it overlaps and a map of a few km^2 builds on a workstation. Views are rendered by worker
+processes (all cores by default; the tiles are shared, not copied), and the patch cap is applied
+in order in the parent, so the map does not depend on the number of workers. Before rendering,
+a sample of views is timed and the expected count, time and size are reported.
 """
 
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 from scipy import ndimage
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.descriptor import describe_points, one_point_per_voxel
+from mf_lpr_ros.core.descriptor import cap_patches, describe_points, one_point_per_voxel, scan_seed
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
@@ -48,6 +57,10 @@ class RenderParams:
     None: unlimited). horizontal_fov_deg: below 360 (a forward-looking sensor, e.g. a Livox
     Avia's 70), each position gets references facing several headings (RenderParams.headings),
     each holding only that wedge: a 70-degree scan does not resemble a 360-degree view.
+    reach_m: a position is rendered only when structure (an obstacle cell) lies within this
+    distance: the middle of an open field sees only ground, and a km^2 of it would become
+    thousands of references that match nothing. None: the descriptor window's half width
+    (nothing in reach, nothing in the window); math.inf: no limit.
     tile_m: side of the tiles of the memory-mapped cloud.
     """
 
@@ -59,6 +72,7 @@ class RenderParams:
     elevation_bin_deg: float = 2.0
     elevation_deg: tuple[float, float] | None = None
     horizontal_fov_deg: float = 360.0
+    reach_m: float | None = None
     tile_m: float = 32.0
 
     def headings(self) -> np.ndarray:
@@ -78,6 +92,8 @@ class RenderParams:
             if not getattr(self, name) > 0:
                 raise ValueError(f"global map parameter {name} must be > 0, got "
                                  f"{getattr(self, name)!r}")
+        if self.reach_m is not None and not self.reach_m > 0:
+            raise ValueError(f"global map parameter reach_m must be > 0, got {self.reach_m!r}")
         if self.sensor_height_m is not None and not self.sensor_height_m > 0:
             raise ValueError(f"global map parameter sensor_height_m must be > 0, got "
                              f"{self.sensor_height_m!r}")
@@ -131,10 +147,14 @@ def ground_grid(points: np.ndarray, cell_m: float, body_band_m: tuple[float, flo
 
 
 def reference_positions(grid: GroundGrid, spacing_m: float,
-                        trajectory_xy: np.ndarray | None = None) -> np.ndarray:
+                        trajectory_xy: np.ndarray | None = None,
+                        reach_m: float = math.inf) -> np.ndarray:
     """(n, 2) positions on a spacing_m lattice over the free cells (ground, no obstacle)
-    connected to the trajectory's cells, or over every free cell without a trajectory."""
+    connected to the trajectory's cells, or over every free cell without a trajectory, with
+    an obstacle cell within reach_m."""
     free = ~np.isnan(grid.ground) & ~grid.obstacle
+    if math.isfinite(reach_m) and grid.obstacle.any():
+        free &= ndimage.distance_transform_edt(~grid.obstacle) * grid.cell_m <= reach_m
     if trajectory_xy is not None and len(trajectory_xy):
         cells = np.clip(grid.cell_of(trajectory_xy), 0, np.array(free.shape) - 1)
         # The trajectory's own cells are driveable, whatever the grid says about them.
@@ -163,21 +183,34 @@ def render_view(cloud: TiledCloud, position: np.ndarray, ground_z: float,
     if not len(local):
         return local
     ranges = np.hypot(local[:, 0], local[:, 1])
+    # The descriptor drops what lies beyond its disc (or max_range), and a farther point never
+    # hides a nearer one: dropping it now changes no return the descriptor keeps.
+    reach = params.extent_m / 2 * (1.0 if params.crop == "disc" else math.sqrt(2.0))
+    if params.max_range is not None:
+        reach = min(reach, params.max_range)
+    within = ranges <= reach + params.voxel_size
+    local, ranges = local[within], ranges[within]
+    elevation = np.degrees(np.arctan2(local[:, 2], ranges))
     if render.elevation_deg is not None:
-        elevation = np.degrees(np.arctan2(local[:, 2], ranges))
         in_view = (elevation >= render.elevation_deg[0]) & (elevation <= render.elevation_deg[1])
-        local, ranges = local[in_view], ranges[in_view]
+        local, ranges, elevation = local[in_view], ranges[in_view], elevation[in_view]
     azimuth = ((np.arctan2(local[:, 1], local[:, 0]) + np.pi) / (2 * np.pi)
                * render.azimuth_bins).astype(np.int64) % render.azimuth_bins
     n_elevations = int(180.0 / render.elevation_bin_deg) + 1
-    elevation = np.clip(((np.degrees(np.arctan2(local[:, 2], ranges)) + 90.0)
-                         / render.elevation_bin_deg).astype(np.int64), 0, n_elevations - 1)
-    bins = azimuth * n_elevations + elevation
-    # One return per beam direction, the nearest: what a LiDAR with this angular resolution
-    # records (fewer, sparser points on a facade than the map holds, and nothing behind it).
-    order = np.argsort(ranges, kind="stable")
-    _, first = np.unique(bins[order], return_index=True)
-    return local[order[first]]
+    elevation_bin = np.clip(((elevation + 90.0) / render.elevation_bin_deg).astype(np.int64),
+                            0, n_elevations - 1)
+    bins = azimuth * n_elevations + elevation_bin
+    # One return per beam direction, the nearest (the first of equals): what a LiDAR with this
+    # angular resolution records (fewer, sparser points on a facade than the map holds, and
+    # nothing behind it). A non-negative float32's bits order as the float does, so one
+    # integer minimum per bin over (range bits, point index) finds it without sorting.
+    keys = (ranges.astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)
+            | np.arange(len(ranges), dtype=np.uint64))
+    nearest = np.full(render.azimuth_bins * n_elevations, np.iinfo(np.uint64).max,
+                      dtype=np.uint64)
+    np.minimum.at(nearest, bins, keys)
+    hit = np.sort(nearest[nearest != np.iinfo(np.uint64).max] & np.uint64(0xFFFFFFFF))
+    return local[hit.astype(np.int64)]
 
 
 def _facing(view: np.ndarray, heading: float, fov_deg: float) -> np.ndarray:
@@ -196,12 +229,15 @@ def _facing(view: np.ndarray, heading: float, fov_deg: float) -> np.ndarray:
 def build_global_map(cloud_path: str | Path, config: Config, *,
                      trajectory: np.ndarray | None = None,
                      render: RenderParams = RenderParams(), progress: bool = True,
-                     points: np.ndarray | None = None) -> ReferenceMap:
+                     points: np.ndarray | None = None, workers: int | None = None,
+                     report: Callable[[str], None] | None = None) -> ReferenceMap:
     """A ReferenceMap of references rendered from the global cloud at cloud_path (or points,
     already read) on a grid over the traversable area (see the module doc).
 
     trajectory: (n, 4, 4) world_T_sensor poses of the mapping run (seeds the area, and gives
-    the sensor height when render.sensor_height_m is None).
+    the sensor height when render.sensor_height_m is None). workers: rendering processes
+    (None: every core this process may use; 1: in this process). report: where the estimate
+    made before rendering goes (None: stderr when progress is on).
     """
     if config.auto:
         raise ValueError("preset auto measures scans; a global map has none: name a preset")
@@ -215,39 +251,118 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
         if height is None and len(trajectory):
             height = float(np.median(trajectory[:, 2, 3] - grid.ground_at(trajectory_xy)))
     height = DEFAULT_SENSOR_HEIGHT_M if height is None or not height > 0 else height
-    positions = reference_positions(grid, render.spacing_m, trajectory_xy)
+    params = config.descriptor
+    reach = params.extent_m / 2 if render.reach_m is None else render.reach_m
+    positions = reference_positions(grid, render.spacing_m, trajectory_xy, reach)
     if not len(positions):
         raise InvalidCloudError(f"{cloud_path}: no traversable ground found in the global map")
     grounds = grid.ground_at(positions)
-    params = config.descriptor
-    # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
-    cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m)
     headings = render.headings()
     reference_map = ReferenceMap(params, metadata={
         "kind": GLOBAL_MAP_KIND, "source": str(cloud_path), "spacing_m": render.spacing_m,
         "sensor_height_m": height, "cloud_points": int(len(points)),
         "grid_area_km2": len(positions) * render.spacing_m ** 2 / 1e6})
+    if report is None and progress:
+        def report(line: str) -> None:
+            print(line, file=sys.stderr, flush=True)
+    workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(positions)))
+    # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
+    cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m)
+    global _RENDERER
+    _RENDERER = _Renderer(cloud, positions, grounds, params, render, height, headings)
     try:
-        for index in progress_bar(range(len(positions)), total=len(positions),
-                                  desc="render references", enabled=progress, unit="ref"):
-            view = render_view(cloud, positions[index], float(grounds[index]), params,
-                               render, height)
-            for heading in headings:
-                seen = _facing(view, heading, render.horizontal_fov_deg)
-                try:
-                    occupancy = describe_points(seen, params, reference=True,
-                                                seed_key=len(reference_map))
-                except InvalidCloudError:
+        if report is not None:
+            report(_estimate(_RENDERER, workers))
+        added = 0
+        for index, views in progress_bar(_rendered(workers, len(positions)), total=len(positions),
+                                         desc="render references", enabled=progress,
+                                         unit="position"):
+            for heading, packed in zip(headings, views):
+                if packed is None:
                     continue
+                occupied = np.unpackbits(packed, count=params.size ** 2).reshape(
+                    params.size, params.size).astype(bool)
                 pose = np.eye(4)
                 pose[:2, :2] = [[np.cos(heading), -np.sin(heading)],
                                 [np.sin(heading), np.cos(heading)]]
                 pose[:3, 3] = [positions[index, 0], positions[index, 1],
                                grounds[index] + height]
-                reference_map.append(occupancy, pose, 0.0, index)
+                # Capped here, in map order, with the seed a one-process build gives it.
+                reference_map.append(cap_patches(occupied, params, scan_seed(params, added)),
+                                     pose, 0.0, index)
+                added += 1
     finally:
+        _RENDERER = None
         cloud.close()
     if not len(reference_map):
         raise InvalidCloudError(f"{cloud_path}: no reference could be rendered (nothing within "
                                 "the descriptor's window and height band)")
     return reference_map
+
+
+@dataclass
+class _Renderer:
+    """What rendering a position needs; a module global so forked workers share it."""
+
+    cloud: TiledCloud
+    positions: np.ndarray
+    grounds: np.ndarray
+    params: DescriptorParams
+    render: RenderParams
+    height: float
+    headings: np.ndarray
+
+    def views(self, index: int) -> list[np.ndarray | None]:
+        """The packed, uncapped occupancy of each heading's view at position index (None:
+        nothing to describe)."""
+        view = render_view(self.cloud, self.positions[index], float(self.grounds[index]),
+                           self.params, self.render, self.height)
+        packed: list[np.ndarray | None] = []
+        for heading in self.headings:
+            try:
+                occupancy = describe_points(_facing(view, heading, self.render.horizontal_fov_deg),
+                                            self.params)
+            except InvalidCloudError:
+                packed.append(None)
+                continue
+            packed.append(np.packbits(occupancy.ravel()))
+        return packed
+
+
+_RENDERER: _Renderer | None = None
+_POSITIONS_PER_TASK = 64
+_ESTIMATE_SAMPLE = 24
+
+
+def _render_positions(indices: range) -> list[list[np.ndarray | None]]:
+    return [_RENDERER.views(index) for index in indices]
+
+
+def _rendered(workers: int, count: int) -> Iterator[tuple[int, list[np.ndarray | None]]]:
+    """(position index, its views) in position order, rendered by workers processes."""
+    tasks = [range(first, min(first + _POSITIONS_PER_TASK, count))
+             for first in range(0, count, _POSITIONS_PER_TASK)]
+    if workers == 1:
+        for task in tasks:
+            yield from zip(task, _render_positions(task))
+        return
+    # fork: the workers share the tiled cloud's pages and the renderer without pickling them.
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        for task, views in zip(tasks, pool.map(_render_positions, tasks)):
+            yield from zip(task, views)
+
+
+def _estimate(renderer: _Renderer, workers: int) -> str:
+    """A line saying how many references, how long and how large, from a timed sample."""
+    count = len(renderer.positions)
+    sample = np.unique(np.linspace(0, count - 1, min(_ESTIMATE_SAMPLE, count)).astype(int))
+    started = time.perf_counter()
+    rendered = sum(view is not None for index in sample for view in renderer.views(int(index)))
+    per_position = (time.perf_counter() - started) / len(sample)
+    references = count * rendered / len(sample)
+    seconds = count * per_position / workers
+    megabytes = references * (renderer.params.size ** 2 / 8 + 8 * 18) / 1e6
+    duration = f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+    return (f"rendering {count} positions x {len(renderer.headings)} headings: ~{references:.0f} "
+            f"references, ~{megabytes:.0f} MB of map, ~{duration} on {workers} "
+            f"worker{'s' if workers > 1 else ''} ({per_position * 1e3:.1f} ms a position)")

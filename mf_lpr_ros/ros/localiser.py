@@ -176,6 +176,10 @@ class LocaliserLogic(LidarNodeMixin):
             f"{settings.mode}: {self.localiser.reference_count} references, voxel "
             f"{config.descriptor.voxel_size} m, publishing in frame '{self.map_frame_id}', "
             f"loop closures as {sorted(settings.loop_closure_formats)}")
+        if self.localiser.index.spectra_on_demand:
+            self.get_logger().info(
+                "reference spectra computed on demand for each query's candidates; prefilter "
+                f"features: {self.localiser.index.prefilter_cache_status}")
         if self.localiser.submap is not None:
             window = self.localiser.submap.window
             if not inputs.has_poses:

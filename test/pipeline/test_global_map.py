@@ -178,3 +178,45 @@ def test_a_compressed_global_map_builds_as_its_binary_twin(town, tmp_path):
     assert len(maps[0]) == len(maps[1]) > 5
     np.testing.assert_array_equal(maps[0].occupancy_bits, maps[1].occupancy_bits)
     np.testing.assert_allclose(maps[0].poses, maps[1].poses)
+
+
+def test_rendering_workers_build_the_map_one_process_builds(town):
+    _, cloud = town
+    crop = cloud[(cloud[:, 0] > 20) & (cloud[:, 0] < 70)]
+    mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(30.0, 60.0, 2.0)])
+    lines = []
+    alone = build_global_map("town.pcd", CONFIG, trajectory=mapping, points=crop,
+                             render=SIM_RENDER, progress=False, workers=1)
+    shared = build_global_map("town.pcd", CONFIG, trajectory=mapping, points=crop,
+                              render=SIM_RENDER, progress=False, workers=2, report=lines.append)
+    assert len(alone) > 20
+    np.testing.assert_array_equal(alone.occupancy_bits, shared.occupancy_bits)
+    np.testing.assert_array_equal(alone.poses, shared.poses)
+    np.testing.assert_array_equal(alone.source_indices, shared.source_indices)
+    # The estimate made before rendering names the positions and the references to come.
+    assert len(lines) == 1
+    assert f"rendering {len(alone)} positions x 1 headings: ~{len(alone)} references" in lines[0]
+    assert "on 2 workers" in lines[0]
+
+
+def test_open_ground_beyond_reach_of_any_structure_is_not_rendered(town):
+    _, cloud = town
+    rng = np.random.default_rng(4)
+    street = cloud[(cloud[:, 0] > 20) & (cloud[:, 0] < 60) & (np.abs(cloud[:, 1]) < 20)]
+    # A bare hillside east of the street, 40-160 m from the nearest building: no obstacle,
+    # but the slope ahead rises into the descriptor's height band, so every view of it holds
+    # something, and nothing to tell one position from the next.
+    xy = rng.uniform(100, 220, (60000, 2)) + [0, -60]
+    field = np.c_[xy, 0.1 * (xy[:, 0] - 100)]
+    points = np.concatenate([street, field.astype(np.float32)])
+    reach = CONFIG.descriptor.extent_m / 2
+    limited = build_global_map("town.pcd", CONFIG, points=points, progress=False, workers=1,
+                               render=RenderParams(spacing_m=6.0, elevation_deg=(-15.0, 15.0)))
+    unlimited = build_global_map("town.pcd", CONFIG, points=points, progress=False, workers=1,
+                                 render=RenderParams(spacing_m=6.0, elevation_deg=(-15.0, 15.0),
+                                                     reach_m=np.inf))
+    far = limited.poses[:, 0, 3] > 60 + reach + 6.0
+    assert not far.any()
+    assert (unlimited.poses[:, 0, 3] > 60 + reach + 6.0).sum() > 100
+    with pytest.raises(ValueError, match="reach_m"):
+        RenderParams(reach_m=0.0)

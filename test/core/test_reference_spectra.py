@@ -1,0 +1,145 @@
+"""Reference spectra computed on demand and the prefilter cache beside a map file."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.core import search as search_module
+from mf_lpr_ros.core.descriptor import describe_points
+from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.prefilter_cache import cache_path
+from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.errors import ConfigError
+from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.sim.synthetic import route, scan_world
+
+PARAMS = DescriptorParams(voxel_size=0.4, z_min=-1.2)
+# 8 of 36 references: the prefilter, its expansion by map neighbours and the exact stage
+# all take part.
+SEARCH = SearchParams(prefilter_top_k=8, backend="numpy")
+
+
+def _path_map(world, poses) -> ReferenceMap:
+    rng = np.random.default_rng(5)
+    reference_map = ReferenceMap(PARAMS)
+    for i, (x, y, yaw) in enumerate(poses):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+                             float(i), i)
+    return reference_map
+
+
+@pytest.fixture(scope="module")
+def loop_map(world):
+    return _path_map(world, route(36))
+
+
+@pytest.fixture(scope="module")
+def queries(world):
+    rng = np.random.default_rng(6)
+    return [describe_points(scan_world(world, x + 1.1, y - 0.7, yaw + 0.4, rng)[0], PARAMS)
+            for x, y, yaw in route(36)[::5]]
+
+
+def _same_result(a, b):
+    assert a.reference_index == b.reference_index
+    np.testing.assert_array_equal(a.candidates, b.candidates)
+    np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
+    assert a.score == pytest.approx(b.score, rel=1e-5)
+    assert a.confidence == pytest.approx(b.confidence, rel=1e-5)
+    assert a.distinctiveness == pytest.approx(b.distinctiveness, rel=1e-5, abs=1e-6)
+
+
+@pytest.mark.parametrize("n_active", [None, 20, 6])
+def test_on_demand_spectra_give_the_matches_of_spectra_in_memory(loop_map, queries, n_active):
+    # n_active 6 is under prefilter_top_k: the exhaustive path, on demand too.
+    memory = MatchedFilterIndex(loop_map, dataclasses.replace(SEARCH, reference_spectra="memory"))
+    on_demand = MatchedFilterIndex(loop_map, dataclasses.replace(SEARCH,
+                                                                 reference_spectra="on_demand"))
+    assert not memory.spectra_on_demand and on_demand.spectra_on_demand
+    for query in queries:
+        _same_result(memory.query(query, n_active), on_demand.query(query, n_active))
+    # Only a query's candidates are held: the spectra bank is sized for them, not the map.
+    assert len(on_demand.bank) <= len(loop_map)
+    assert on_demand.nbytes < memory.nbytes
+
+
+def test_auto_keeps_spectra_in_memory_up_to_its_limit(loop_map, monkeypatch):
+    assert not MatchedFilterIndex(loop_map, SEARCH).spectra_on_demand
+    monkeypatch.setattr(search_module, "ON_DEMAND_ABOVE", len(loop_map) - 1)
+    assert MatchedFilterIndex(loop_map, SEARCH).spectra_on_demand
+    exhaustive = dataclasses.replace(SEARCH, prefilter_top_k=0)
+    assert not MatchedFilterIndex(loop_map, exhaustive).spectra_on_demand
+
+
+def test_on_demand_needs_the_prefilter():
+    with pytest.raises(ConfigError, match="reference_spectra"):
+        SearchParams(prefilter_top_k=0, reference_spectra="on_demand")
+
+
+def test_on_demand_index_follows_a_growing_map(world, loop_map, queries):
+    growing = ReferenceMap(PARAMS)
+    on_demand = dataclasses.replace(SEARCH, reference_spectra="on_demand")
+    index = MatchedFilterIndex(growing, on_demand)
+    assert index.query(queries[0]) is None
+    for i in range(len(loop_map)):
+        growing.append(loop_map.occupancy(i), loop_map.poses[i], float(i), i)
+    assert index.sync() == len(loop_map)
+    reference = MatchedFilterIndex(loop_map, on_demand)
+    for query in queries:
+        _same_result(index.query(query), reference.query(query))
+
+
+def test_prefilter_cache_is_written_reused_and_rebuilt_when_stale(tmp_path, loop_map, queries):
+    path = tmp_path / "loop.mfmap"
+    loop_map.save(path)
+    on_demand = dataclasses.replace(SEARCH, reference_spectra="on_demand")
+    expected = [MatchedFilterIndex(loop_map, on_demand).query(query) for query in queries]
+
+    def results_and_status():
+        index = MatchedFilterIndex(ReferenceMap.load(path), on_demand)
+        return [index.query(query) for query in queries], index.prefilter_cache_status
+
+    first, status = results_and_status()
+    assert status.startswith("no cache at") and "; cached at" in status
+    assert cache_path(path).exists()
+    second, status = results_and_status()
+    assert status.startswith("loaded from")
+    for a, b, c in zip(expected, first, second):
+        _same_result(a, b)
+        _same_result(a, c)
+
+    cached = bytearray(cache_path(path).read_bytes())
+    cached[-5] ^= 0xFF
+    cache_path(path).write_bytes(bytes(cached))
+    repaired, status = results_and_status()
+    assert "checksum mismatch" in status and "; cached at" in status
+    for a, b in zip(expected, repaired):
+        _same_result(a, b)
+    assert results_and_status()[1].startswith("loaded from")
+
+    # The map changes (a reference more): the old cache belongs to another version of it.
+    grown = ReferenceMap.load(path)
+    grown.append(loop_map.occupancy(0), loop_map.poses[0], 99.0, 99)
+    grown.save(path)
+    index = MatchedFilterIndex(ReferenceMap.load(path), on_demand)
+    assert index.prefilter_cache_status.startswith("prefilter cache")
+    assert "another version of the map; cached at" in index.prefilter_cache_status
+    assert len(index) == len(loop_map) + 1
+
+    cache_path(path).write_bytes(b"this is not a cache, only some text")
+    assert "not a prefilter cache" in results_and_status()[1]
+
+
+def test_references_appended_after_loading_are_indexed_but_not_cached(tmp_path, loop_map):
+    path = tmp_path / "loop.mfmap"
+    loop_map.save(path)
+    loaded = ReferenceMap.load(path)
+    loaded.append(loop_map.occupancy(3), loop_map.poses[3], 50.0, 50)
+    index = MatchedFilterIndex(loaded, dataclasses.replace(SEARCH, reference_spectra="on_demand"))
+    assert len(index) == len(loop_map) + 1
+    # The cache holds what the file holds, so the next start can use it.
+    again = MatchedFilterIndex(ReferenceMap.load(path),
+                               dataclasses.replace(SEARCH, reference_spectra="on_demand"))
+    assert again.prefilter_cache_status.startswith("loaded from")
