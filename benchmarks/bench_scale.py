@@ -154,7 +154,7 @@ def _child(*args: str) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+",
+    parser.add_argument("--sizes", type=int, nargs="*",
                         default=[1500, 20000, 100000, 250000, 1000000])
     parser.add_argument("--queries", type=int, default=20)
     parser.add_argument("--work", type=Path, help="where the generated maps go (default: a "

@@ -100,8 +100,10 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
 
 
 class TiledCloud:
-    """A cloud sorted by square tiles into a memory-mapped file: window() reads only the tiles
-    a window overlaps. The file lives in folder (a temporary one by default) until close()."""
+    """A cloud sorted by square tiles into a memory-mapped file: a window reads only the tiles
+    it overlaps. The coordinates are stored as three columns (x, y, z), so a window's arithmetic
+    runs on contiguous arrays. The file lives in folder (a temporary one by default) until
+    close()."""
 
     def __init__(self, points: np.ndarray, tile_m: float, folder: str | Path | None = None
                  ) -> None:
@@ -112,33 +114,36 @@ class TiledCloud:
         keys = tiles[:, 0] * self.shape[1] + tiles[:, 1]
         order = np.argsort(keys, kind="stable")
         self._folder = tempfile.TemporaryDirectory(dir=folder, prefix="mf_lpr_tiles_")
-        self._path = Path(self._folder.name) / "points.f32"
-        stored = np.memmap(self._path, dtype=np.float32, mode="w+", shape=(len(points), 3))
-        stored[:] = points[order]
+        self._path = Path(self._folder.name) / "columns.f32"
+        stored = np.memmap(self._path, dtype=np.float32, mode="w+", shape=(3, len(points)))
+        stored[:] = points[order, :3].T
         stored.flush()
         del stored
-        self.points = np.memmap(self._path, dtype=np.float32, mode="r", shape=(len(points), 3))
+        self.columns = np.memmap(self._path, dtype=np.float32, mode="r", shape=(3, len(points)))
         counts = np.bincount(keys, minlength=self.shape[0] * self.shape[1])
         self._starts = np.concatenate([[0], np.cumsum(counts)])
 
-    def window(self, x: float, y: float, half: float) -> np.ndarray:
-        """Points with |px - x| < half and |py - y| < half (a copy)."""
+    def near(self, x: float, y: float, half: float) -> np.ndarray:
+        """(3, n) x, y, z columns (a copy) of every point in the tiles that the square
+        |px - x| < half, |py - y| < half overlaps: a superset of the window, in tile order."""
         low = np.floor((np.array([x, y]) - half - self.origin) / self.tile_m).astype(int)
         high = np.floor((np.array([x, y]) + half - self.origin) / self.tile_m).astype(int)
         low = np.maximum(low, 0)
         high = np.minimum(high, np.array(self.shape) - 1)
-        parts = []
-        for tx in range(low[0], high[0] + 1):
-            first = tx * self.shape[1]
-            start, stop = self._starts[first + low[1]], self._starts[first + high[1] + 1]
-            if stop > start:
-                parts.append(np.asarray(self.points[start:stop]))
-        if not parts:
-            return np.zeros((0, 3), dtype=np.float32)
-        points = np.concatenate(parts)
-        inside = (np.abs(points[:, 0] - x) < half) & (np.abs(points[:, 1] - y) < half)
-        return points[inside]
+        # One contiguous run of tiles per tile row: slices, never an index array (20x slower).
+        rows = [self.columns[:, self._starts[tx * self.shape[1] + low[1]]:
+                             self._starts[tx * self.shape[1] + high[1] + 1]]
+                for tx in range(low[0], high[0] + 1)]
+        if not rows:
+            return np.zeros((3, 0), dtype=np.float32)
+        return np.concatenate(rows, axis=1)
+
+    def window(self, x: float, y: float, half: float) -> np.ndarray:
+        """(n, 3) points with |px - x| < half and |py - y| < half (a copy)."""
+        columns = self.near(x, y, half)
+        inside = (np.abs(columns[0] - x) < half) & (np.abs(columns[1] - y) < half)
+        return np.ascontiguousarray(columns[:, inside].T)
 
     def close(self) -> None:
-        del self.points
+        del self.columns
         self._folder.cleanup()

@@ -12,11 +12,13 @@ traversable area:
   and only what a LiDAR there would return: the nearest point per beam direction
   (RenderParams' angular resolution and vertical field of view), described as a reference
   scan with yaw 0 (the search covers every rotation).
-The cloud is sorted by square tiles into a memory-mapped file, so a window reads only the
-tiles it overlaps and a map of a few km^2 builds on a workstation. Views are rendered by worker
-processes (all cores by default; the tiles are shared, not copied), and the patch cap is applied
-in order in the parent, so the map does not depend on the number of workers. Before rendering,
-a sample of views is timed and the expected count, time and size are reported.
+The cloud is sorted by square tiles into a memory-mapped file of x, y, z columns, so a view
+reads only the tiles it overlaps and a map of a few km^2 builds on a workstation. A view costs
+~5 ms: the nearest return per direction is one integer minimum per bin, not a sort. Views are
+rendered by worker processes (every core by default; the tiles are shared, not copied), and the
+patch cap is applied in order in the parent, so the map does not depend on the number of
+workers. Before rendering, a sample of views is timed and the expected count, time and size are
+reported.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ class RenderParams:
     elevation_deg: tuple[float, float] | None = None
     horizontal_fov_deg: float = 360.0
     reach_m: float | None = None
-    tile_m: float = 32.0
+    tile_m: float = 8.0
 
     def headings(self) -> np.ndarray:
         """Yaws (rad) of the references rendered at each position: 0 alone for a 360-degree
@@ -175,26 +177,32 @@ def render_view(cloud: TiledCloud, position: np.ndarray, ground_z: float,
                 ) -> np.ndarray:
     """The points a sensor sensor_height_m above the ground at position would see, in its frame
     (yaw 0), within the descriptor's window and below its height band's top."""
-    window = cloud.window(float(position[0]), float(position[1]), params.extent_m / 2)
-    local = window - np.array([position[0], position[1], ground_z + sensor_height_m],
-                              dtype=np.float32)
-    if params.z_max is not None:
-        local = local[local[:, 2] <= params.z_max]
-    if not len(local):
-        return local
-    ranges = np.hypot(local[:, 0], local[:, 1])
+    half = params.extent_m / 2
+    x, y, z = cloud.near(float(position[0]), float(position[1]), half)
+    x = x - np.float32(position[0])
+    y = y - np.float32(position[1])
+    z = z - np.float32(ground_z + sensor_height_m)
+    ranges = np.hypot(x, y)
     # The descriptor drops what lies beyond its disc (or max_range), and a farther point never
-    # hides a nearer one: dropping it now changes no return the descriptor keeps.
-    reach = params.extent_m / 2 * (1.0 if params.crop == "disc" else math.sqrt(2.0))
+    # hides a nearer one: dropping it now changes no return the descriptor keeps. (So the
+    # disc needs no square window first.)
+    reach = half * (1.0 if params.crop == "disc" else math.sqrt(2.0))
     if params.max_range is not None:
         reach = min(reach, params.max_range)
-    within = ranges <= reach + params.voxel_size
-    local, ranges = local[within], ranges[within]
-    elevation = np.degrees(np.arctan2(local[:, 2], ranges))
+    keep = ranges <= reach + params.voxel_size
+    if params.crop != "disc":
+        keep &= (np.abs(x) < half) & (np.abs(y) < half)
+    if params.z_max is not None:
+        keep &= z <= params.z_max
+    kept = np.flatnonzero(keep)
+    x, y, z, ranges = x[kept], y[kept], z[kept], ranges[kept]
+    elevation = np.degrees(np.arctan2(z, ranges))
     if render.elevation_deg is not None:
-        in_view = (elevation >= render.elevation_deg[0]) & (elevation <= render.elevation_deg[1])
-        local, ranges, elevation = local[in_view], ranges[in_view], elevation[in_view]
-    azimuth = ((np.arctan2(local[:, 1], local[:, 0]) + np.pi) / (2 * np.pi)
+        in_view = np.flatnonzero((elevation >= render.elevation_deg[0])
+                                 & (elevation <= render.elevation_deg[1]))
+        x, y, z, ranges, elevation = (x[in_view], y[in_view], z[in_view], ranges[in_view],
+                                      elevation[in_view])
+    azimuth = ((np.arctan2(y, x) + np.pi) / (2 * np.pi)
                * render.azimuth_bins).astype(np.int64) % render.azimuth_bins
     n_elevations = int(180.0 / render.elevation_bin_deg) + 1
     elevation_bin = np.clip(((elevation + 90.0) / render.elevation_bin_deg).astype(np.int64),
@@ -210,7 +218,8 @@ def render_view(cloud: TiledCloud, position: np.ndarray, ground_z: float,
                       dtype=np.uint64)
     np.minimum.at(nearest, bins, keys)
     hit = np.sort(nearest[nearest != np.iinfo(np.uint64).max] & np.uint64(0xFFFFFFFF))
-    return local[hit.astype(np.int64)]
+    hit = hit.astype(np.int64)
+    return np.stack([x[hit], y[hit], z[hit]], axis=1)
 
 
 def _facing(view: np.ndarray, heading: float, fov_deg: float) -> np.ndarray:

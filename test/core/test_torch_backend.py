@@ -54,18 +54,24 @@ def test_prefilter_matches_numpy():
                                atol=1e-5)
 
 
-def test_search_results_match_numpy(world):
+def test_search_results_match_numpy(world, tmp_path):
     rng = np.random.default_rng(0)
     reference_map = ReferenceMap(PARAMS)
     for i, (x, y, yaw) in enumerate([(0, 0, 0.0), (25, 0, 1.0), (0, 25, -2.0), (20, 20, 0.3)]):
         points, pose = scan_world(world, x, y, yaw, rng)
         reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
                              float(i), i)
-    for top_k in (0, 2):
-        search = SearchParams(prefilter_top_k=top_k, backend="numpy")
+    reference_map.save(tmp_path / "four.mfmap")
+    statuses = []
+    for top_k, spectra in ((0, "memory"), (2, "memory"), (2, "on_demand"), (2, "on_demand")):
+        search = SearchParams(prefilter_top_k=top_k, backend="numpy", reference_spectra=spectra)
         cpu = MatchedFilterIndex(reference_map, search)
-        gpu = MatchedFilterIndex(reference_map, dataclasses.replace(search, backend="torch"))
+        # On demand from a file: the first start writes the prefilter cache, the second
+        # adopts it on the device.
+        gpu = MatchedFilterIndex(ReferenceMap.load(tmp_path / "four.mfmap"),
+                                 dataclasses.replace(search, backend="torch"))
         assert gpu.backend == "torch" and cpu.backend == "numpy"
+        statuses.append(gpu.prefilter_cache_status)
         for truth in ((1.3, -0.7, 0.5), (21.45, 18.2, -1.7)):
             points, _ = scan_world(world, *truth, np.random.default_rng(1))
             occupancy = describe_points(points, PARAMS)
@@ -75,6 +81,7 @@ def test_search_results_match_numpy(world):
             np.testing.assert_allclose(got.pose, expected.pose, atol=1e-4)
             assert got.confidence == pytest.approx(expected.confidence, abs=1e-5)
             np.testing.assert_allclose(got.covariance, expected.covariance, rtol=1e-3, atol=1e-9)
+    assert "cached at" in statuses[2] and statuses[3].startswith("loaded from")
 
 
 def test_backend_choice(monkeypatch):

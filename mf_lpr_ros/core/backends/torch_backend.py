@@ -104,6 +104,10 @@ class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
         return torch.zeros((self.n_harmonics, capacity, self.n_radii), dtype=torch.complex64,
                            device=self.device)
 
+    def adopt(self, features: np.ndarray) -> None:
+        # The device needs its own copy; a read-only memory map cannot back a tensor.
+        super().adopt(np.array(features))
+
 
 def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int,
                    device: torch.device | None = None) -> np.ndarray:
