@@ -140,6 +140,19 @@ def test_references_appended_after_loading_are_indexed_but_not_cached(tmp_path, 
     index = MatchedFilterIndex(loaded, dataclasses.replace(SEARCH, reference_spectra="on_demand"))
     assert len(index) == len(loop_map) + 1
     # The cache holds what the file holds, so the next start can use it.
-    again = MatchedFilterIndex(ReferenceMap.load(path),
+    reloaded = ReferenceMap.load(path)
+    again = MatchedFilterIndex(reloaded,
                                dataclasses.replace(SEARCH, reference_spectra="on_demand"))
     assert again.prefilter_cache_status.startswith("loaded from")
+    # A map that grows after starting from the (read-only, memory-mapped) cache: the new
+    # reference is indexed and found.
+    reloaded.append(loop_map.occupancy(3), loop_map.poses[3] @ _shifted(500.0), 50.0, 50)
+    assert again.sync() == 1 and len(again) == len(loop_map) + 1
+    found = again.query(loop_map.occupancy(3))
+    assert {3, len(loop_map)} <= set(found.candidates[:2].tolist())
+
+
+def _shifted(metres: float) -> np.ndarray:
+    shift = np.eye(4)
+    shift[0, 3] = metres
+    return shift
