@@ -176,7 +176,6 @@ class MatchedFilterIndex:
                                   self.prefilter.stored_features[:, : self.map.source_references])
             self.prefilter_cache_status = f"{self.prefilter_cache_status}; {saved}"
         self._indexed = stop
-        self._positions = cKDTree(self.map.poses[:stop, :2, 3])
         return stop - start
 
     def _low_references(self, references: slice | np.ndarray) -> np.ndarray:
@@ -232,8 +231,11 @@ class MatchedFilterIndex:
         else:
             searched = np.arange(n_refs)
         if self.spectra_on_demand:
-            self.bank.refill(self._low_references(np.sort(searched))[
-                np.argsort(np.argsort(searched))])
+            # Read the map in file order, store in searched's order: column k is searched[k].
+            by_position = np.argsort(searched)
+            low = np.empty((len(searched),) + (self.params.low_size,) * 2, dtype=np.float32)
+            low[by_position] = self._low_references(searched[by_position])
+            self.bank.refill(low)
             columns = np.arange(len(searched))
         else:
             columns = searched
@@ -370,6 +372,9 @@ class MatchedFilterIndex:
         radius = self.search.prefilter_expand_m
         if radius <= 0:
             return searched
+        if self._positions is None or self._positions.n != len(self):
+            # Built when first needed after the map grew, not on every sync of a live map.
+            self._positions = cKDTree(self.map.poses[: len(self), :2, 3])
         leaders = self.map.poses[searched[:_EXPANDED_LEADERS], :2, 3]
         near = np.unique(np.concatenate(
             [np.asarray(found, dtype=np.int64)

@@ -100,10 +100,10 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
 
 
 class TiledCloud:
-    """A cloud sorted by square tiles into a memory-mapped file: a window reads only the tiles
-    it overlaps. The coordinates are stored as three columns (x, y, z), so a window's arithmetic
-    runs on contiguous arrays. The file lives in folder (a temporary one by default) until
-    close()."""
+    """A cloud sorted by square tiles into a memory-mapped file: a view reads only the tiles
+    it overlaps (near). The coordinates are stored as three columns (x, y, z), so a view's
+    arithmetic runs on contiguous arrays. The file lives in folder (a temporary one by default)
+    until close()."""
 
     def __init__(self, points: np.ndarray, tile_m: float, folder: str | Path | None = None
                  ) -> None:
@@ -137,12 +137,6 @@ class TiledCloud:
         if not rows:
             return np.zeros((3, 0), dtype=np.float32)
         return np.concatenate(rows, axis=1)
-
-    def window(self, x: float, y: float, half: float) -> np.ndarray:
-        """(n, 3) points with |px - x| < half and |py - y| < half (a copy)."""
-        columns = self.near(x, y, half)
-        inside = (np.abs(columns[0] - x) < half) & (np.abs(columns[1] - y) < half)
-        return np.ascontiguousarray(columns[:, inside].T)
 
     def close(self) -> None:
         del self.columns
