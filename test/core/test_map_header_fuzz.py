@@ -4,6 +4,7 @@ exception. The slow variant runs many more examples."""
 
 from __future__ import annotations
 
+import copy
 import json
 import struct
 import zlib
@@ -53,9 +54,11 @@ def apply_edit(header, path, value) -> None:
         if value is None:
             node.pop(last, None)
         else:
-            node[last] = value
+            # A copy: hypothesis may hand one value object to two edits, and inserting it
+            # into itself would make the header circular.
+            node[last] = copy.deepcopy(value)
     elif isinstance(node, list) and isinstance(last, int) and last < len(node):
-        node[last] = value
+        node[last] = copy.deepcopy(value)
 
 
 def rewritten(original: bytes, header: dict | bytes) -> bytes:
