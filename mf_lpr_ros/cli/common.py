@@ -26,9 +26,10 @@ def config_from_arguments(args: argparse.Namespace) -> Config:
 
 
 def add_scheduler(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scheduler", help="run the work units on Dask distributed: 'local' "
-                        "(a cluster of processes on this machine) or a scheduler ADDRESS "
-                        "(tcp://host:8786); default: serial")
+    parser.add_argument("--scheduler", help="run the work units (with build-map --global-map: "
+                        "the rendering) on Dask distributed: 'local' (a cluster of processes "
+                        "on this machine) or a scheduler ADDRESS (tcp://host:8786); default: no "
+                        "cluster")
     parser.add_argument("--workers", type=int, default=2,
                         help="with --scheduler local: worker processes; with build-map "
                         "--global-map: rendering processes (default 2)")

@@ -71,9 +71,11 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
                           sensor_height_m=args.sensor_height_m,
                           horizontal_fov_deg=args.horizontal_fov_deg,
                           reach_m=args.reach_m)
-    reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
-                                     render=render, progress=not args.quiet,
-                                     workers=args.workers)
+    with cluster(args) as client:
+        reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
+                                         render=render, progress=not args.quiet,
+                                         workers=args.workers, client=client,
+                                         tiles_folder=args.tiles_dir)
     reference_map.save(args.out)
     area = reference_map.metadata["grid_area_km2"]
     print(f"wrote {args.out}: {len(reference_map)} references rendered from {args.global_map} "
@@ -135,6 +137,10 @@ def register(commands: argparse._SubParsersAction) -> None:
                        help="with --global-map: render a position only when structure lies "
                             "within this distance (default: the descriptor's half width; inf: "
                             "no limit), so open fields do not become references")
+    build.add_argument("--tiles-dir",
+                       help="with --global-map: folder for the tiled cloud the renderers read "
+                            "(default: a temporary one); with --scheduler ADDRESS, one every "
+                            "worker sees at the same path")
     build.add_argument("--out", required=True, help="map file to write (atomically)")
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",

@@ -103,7 +103,11 @@ class TiledCloud:
     """A cloud sorted by square tiles into a memory-mapped file: a view reads only the tiles
     it overlaps (near). The coordinates are stored as three columns (x, y, z), so a view's
     arithmetic runs on contiguous arrays. The file lives in folder (a temporary one by default)
-    until close()."""
+    until close().
+
+    Pickled, it is a handle to that file, not its points: a Dask worker opens the same file
+    (the folder must be one every worker sees at the same path), and only the instance that
+    made the file removes it."""
 
     def __init__(self, points: np.ndarray, tile_m: float, folder: str | Path | None = None
                  ) -> None:
@@ -123,6 +127,30 @@ class TiledCloud:
         counts = np.bincount(keys, minlength=self.shape[0] * self.shape[1])
         self._starts = np.concatenate([[0], np.cumsum(counts)])
 
+    def __getstate__(self) -> dict:
+        return {"tile_m": self.tile_m, "origin": self.origin, "shape": self.shape,
+                "path": str(self._path), "starts": self._starts,
+                "count": int(self.columns.shape[1])}
+
+    def __setstate__(self, state: dict) -> None:
+        self.tile_m, self.origin, self.shape = state["tile_m"], state["origin"], state["shape"]
+        self._starts = state["starts"]
+        self._folder = None
+        self._path = Path(state["path"])
+        expected = 3 * state["count"] * np.dtype(np.float32).itemsize
+        try:
+            size = self._path.stat().st_size
+        except OSError:
+            raise InvalidCloudError(
+                f"{self._path}: the tiled global cloud is not on this machine; a cluster on "
+                "other machines needs the tiles in a folder every worker sees at the same path "
+                "(build-map --tiles-dir)") from None
+        if size != expected:
+            raise InvalidCloudError(f"{self._path}: the tiled global cloud holds {size} bytes, "
+                                    f"{expected} expected (another build replaced it?)")
+        self.columns = np.memmap(self._path, dtype=np.float32, mode="r",
+                                 shape=(3, state["count"]))
+
     def near(self, x: float, y: float, half: float) -> np.ndarray:
         """(3, n) x, y, z columns (a copy) of every point in the tiles that the square
         |px - x| < half, |py - y| < half overlaps: a superset of the window, in tile order."""
@@ -140,4 +168,5 @@ class TiledCloud:
 
     def close(self) -> None:
         del self.columns
-        self._folder.cleanup()
+        if self._folder is not None:
+            self._folder.cleanup()

@@ -15,10 +15,11 @@ traversable area:
 The cloud is sorted by square tiles into a memory-mapped file of x, y, z columns, so a view
 reads only the tiles it overlaps and a map of a few km^2 builds on a workstation. A view costs
 ~5 ms: the nearest return per direction is one integer minimum per bin, not a sort. Views are
-rendered by worker processes (every core by default; the tiles are shared, not copied), and the
-patch cap is applied in order in the parent, so the map does not depend on the number of
-workers. Before rendering, a sample of views is timed and the expected count, time and size are
-reported.
+rendered by worker processes (every core by default; the tiles are shared, not copied) or, for
+areas beyond one machine, by the workers of a Dask cluster, which open the tiles' file by its
+path; the patch cap is applied in order in the parent, so the map does not depend on the number
+of workers or where they run. Before rendering, a sample of views is timed and the expected
+count, time and size are reported.
 """
 
 from __future__ import annotations
@@ -28,10 +29,11 @@ import multiprocessing
 import os
 import sys
 import time
+from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 from scipy import ndimage
@@ -239,14 +241,18 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                      trajectory: np.ndarray | None = None,
                      render: RenderParams = RenderParams(), progress: bool = True,
                      points: np.ndarray | None = None, workers: int | None = None,
+                     client: Any = None, tiles_folder: str | Path | None = None,
                      report: Callable[[str], None] | None = None) -> ReferenceMap:
     """A ReferenceMap of references rendered from the global cloud at cloud_path (or points,
     already read) on a grid over the traversable area (see the module doc).
 
     trajectory: (n, 4, 4) world_T_sensor poses of the mapping run (seeds the area, and gives
     the sensor height when render.sensor_height_m is None). workers: rendering processes
-    (None: every core this process may use; 1: in this process). report: where the estimate
-    made before rendering goes (None: stderr when progress is on).
+    (None: every core this process may use; 1: in this process). client: a Dask
+    distributed.Client whose workers render instead (workers is then ignored); tiles_folder:
+    where the tiled cloud is written for the renderers (default: a temporary folder, which
+    workers on other machines cannot see). report: where the estimate made before rendering
+    goes (None: stderr when progress is on).
     """
     if config.auto:
         raise ValueError("preset auto measures scans; a global map has none: name a preset")
@@ -274,16 +280,22 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     if report is None and progress:
         def report(line: str) -> None:
             print(line, file=sys.stderr, flush=True)
-    workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(positions)))
+    if client is not None:
+        workers = max(1, sum(client.nthreads().values()))
+    else:
+        workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(positions)))
     # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
-    cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m)
+    cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m,
+                       tiles_folder)
     global _RENDERER
     _RENDERER = _Renderer(cloud, positions, grounds, params, render, height, headings)
     try:
         if report is not None:
             report(_estimate(_RENDERER, workers))
         added = 0
-        for index, views in progress_bar(_rendered(workers, len(positions)), total=len(positions),
+        rendered = (_rendered_on_cluster(client, _RENDERER, workers) if client is not None
+                    else _rendered(workers, len(positions)))
+        for index, views in progress_bar(rendered, total=len(positions),
                                          desc="render references", enabled=progress,
                                          unit="position"):
             for heading, packed in zip(headings, views):
@@ -340,17 +352,51 @@ class _Renderer:
 
 _RENDERER: _Renderer | None = None
 _POSITIONS_PER_TASK = 64
+_TASKS_IN_FLIGHT_PER_THREAD = 4
 _ESTIMATE_SAMPLE = 24
 
 
-def _render_positions(indices: range) -> list[list[np.ndarray | None]]:
-    return [_RENDERER.views(index) for index in indices]
+def _render_positions(indices: range, renderer: _Renderer | None = None
+                      ) -> list[list[np.ndarray | None]]:
+    """The views of positions indices, by renderer (default: this process's _RENDERER)."""
+    renderer = renderer or _RENDERER
+    return [renderer.views(index) for index in indices]
+
+
+def _tasks(count: int) -> list[range]:
+    return [range(first, min(first + _POSITIONS_PER_TASK, count))
+            for first in range(0, count, _POSITIONS_PER_TASK)]
+
+
+def _rendered_on_cluster(client: Any, renderer: _Renderer, threads: int
+                         ) -> Iterator[tuple[int, list[np.ndarray | None]]]:
+    """(position index, its views) in position order, rendered by a Dask cluster's workers.
+    The renderer goes to every worker once; a few tasks per thread are in flight, so results
+    never pile up faster than the map takes them."""
+    shared = client.scatter(renderer, broadcast=True)
+    tasks = iter(_tasks(len(renderer.positions)))
+    pending: deque = deque()
+
+    def submit(task: range) -> None:
+        pending.append((task, client.submit(_render_positions, task, shared, pure=False)))
+
+    for task in tasks:
+        submit(task)
+        if len(pending) >= _TASKS_IN_FLIGHT_PER_THREAD * threads:
+            break
+    while pending:
+        task, future = pending.popleft()
+        views = future.result()
+        future.release()
+        following = next(tasks, None)
+        if following is not None:
+            submit(following)
+        yield from zip(task, views)
 
 
 def _rendered(workers: int, count: int) -> Iterator[tuple[int, list[np.ndarray | None]]]:
     """(position index, its views) in position order, rendered by workers processes."""
-    tasks = [range(first, min(first + _POSITIONS_PER_TASK, count))
-             for first in range(0, count, _POSITIONS_PER_TASK)]
+    tasks = _tasks(count)
     if workers == 1:
         for task in tasks:
             yield from zip(task, _render_positions(task))

@@ -13,6 +13,7 @@ pytest.importorskip("distributed", reason="Dask distributed is not installed (ma
 
 from mf_lpr_ros.cli import main  # noqa: E402
 from mf_lpr_ros.config import preset  # noqa: E402
+from mf_lpr_ros.core.map_store import ReferenceMap  # noqa: E402
 from mf_lpr_ros.datasets import open_source  # noqa: E402
 from mf_lpr_ros.errors import UnitFailure
 from mf_lpr_ros.evaluation.protocol import Protocol  # noqa: E402
@@ -119,3 +120,39 @@ def test_failed_units_are_reported_by_name(cluster):
 
     with pytest.raises(UnitFailure, match="unit-2: ValueError: no good"):
         run_units(cluster, fragile, [(f"unit-{k}", (k,)) for k in range(4)], progress=False)
+
+
+def test_global_map_rendered_on_a_cluster_equals_the_one_process_build(cluster, tmp_path):
+    from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+    from mf_lpr_ros.pipeline.global_cloud import write_pcd
+    from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
+    from mf_lpr_ros.sim.scenes import scene_cloud
+    from mf_lpr_ros.sim.simulator import urban_traversals
+
+    cloud = scene_cloud(urban_traversals().scene)
+    street = cloud[(np.abs(cloud[:, 1]) < 30) & (cloud[:, 0] > 20) & (cloud[:, 0] < 70)]
+    mapping = np.stack([pose_matrix(np.array([x, 0.0, 1.8]), quaternion_from_yaw(0.0))
+                        for x in np.arange(30.0, 60.0, 2.0)])
+    config, render = preset("kitti"), RenderParams(elevation_deg=(-15.0, 15.0))
+    alone = build_global_map("town.pcd", config, trajectory=mapping, points=street,
+                             render=render, progress=False, workers=1)
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    lines = []
+    on_cluster = build_global_map("town.pcd", config, trajectory=mapping, points=street,
+                                  render=render, progress=False, client=cluster,
+                                  tiles_folder=tiles, report=lines.append)
+    assert len(alone) > 20
+    np.testing.assert_array_equal(alone.occupancy_bits, on_cluster.occupancy_bits)
+    np.testing.assert_array_equal(alone.poses, on_cluster.poses)
+    np.testing.assert_array_equal(alone.source_indices, on_cluster.source_indices)
+    assert "on 2 workers" in lines[0]
+    assert list(tiles.iterdir()) == []                  # the tiles are removed after the build
+    # The CLI renders on a cluster of its own with --scheduler local.
+    write_pcd(tmp_path / "town.pcd", street)
+    np.savetxt(tmp_path / "poses.txt", mapping[:, :3, :].reshape(len(mapping), 12))
+    assert main(["build-map", "--global-map", str(tmp_path / "town.pcd"), "--trajectory",
+                 str(tmp_path / "poses.txt"), "--preset", "kitti", "--scheduler", "local",
+                 "--workers", "2", "--tiles-dir", str(tiles), "--out",
+                 str(tmp_path / "grid.mfmap"), "--quiet"]) == 0
+    assert len(ReferenceMap.load(tmp_path / "grid.mfmap")) > 20

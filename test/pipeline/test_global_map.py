@@ -199,6 +199,28 @@ def test_rendering_workers_build_the_map_one_process_builds(town):
     assert "on 2 workers" in lines[0]
 
 
+def test_a_pickled_tiled_cloud_opens_the_same_file_and_names_it_when_it_is_gone(tmp_path):
+    import pickle
+
+    points = np.random.default_rng(1).uniform(-40, 40, (5000, 3)).astype(np.float32)
+    tiled = TiledCloud(points, 8.0, tmp_path)
+    handle = pickle.dumps(tiled)
+    assert len(handle) < 2000                           # a handle, not the points
+    reopened = pickle.loads(handle)
+    np.testing.assert_array_equal(reopened.near(3.0, -5.0, 12.0), tiled.near(3.0, -5.0, 12.0))
+    reopened.close()                                    # a handle never removes the file
+    assert tiled.near(0.0, 0.0, 50.0).shape == (3, 5000)
+    (path,) = tmp_path.glob("mf_lpr_tiles_*/columns.f32")
+    with open(path, "r+b") as handle_file:
+        handle_file.truncate(1000)
+    with pytest.raises(InvalidCloudError, match="holds 1000 bytes, 60000 expected"):
+        pickle.loads(handle)
+    tiled.close()
+    assert not path.exists()
+    with pytest.raises(InvalidCloudError, match=r"not on this machine.*--tiles-dir"):
+        pickle.loads(handle)
+
+
 def test_open_ground_beyond_reach_of_any_structure_is_not_rendered(town):
     _, cloud = town
     rng = np.random.default_rng(4)
