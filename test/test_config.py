@@ -11,7 +11,7 @@ def test_paper_defaults():
     descriptor, search = DescriptorParams(), SearchParams()
     assert (descriptor.size, descriptor.pool, descriptor.unoccupied_weight) == (120, 2, -0.15)
     assert (descriptor.patch_size, descriptor.patch_cap) == (10, 20)
-    assert search.rotation_step_deg == 10.0
+    assert search.rotation_step_deg == 5.0, "half the paper's 10 (see SearchParams)"
     assert search.top_n == 3, "one finalist more than the paper's 2 (see SearchParams.top_n)"
     assert Config().spacing_m == 2.0
 
