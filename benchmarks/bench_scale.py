@@ -1,7 +1,7 @@
 """The search at scale: maps of 1,500 to 1,000,000 references, each measured in fresh processes.
 
     .venv/bin/python benchmarks/bench_scale.py [--sizes 1500 20000 100000 250000 1000000]
-        [--queries 20] [--work DIR] [--keep]
+        [--queries 20] [--work DIR] [--keep] [--reuse] [--rotation-step-deg 5]
 
 Each size is generated once (generated_map_file), then started twice in a new process: the
 first start builds the index (and, on demand, writes the prefilter cache beside the map), the
@@ -20,6 +20,10 @@ Queries are references turned by a random quarter turn.
 square) tiled to A km^2, rendered at 2 m on --workers processes (build time measured), then
 started twice and queried with simulated VLP-16 scans from the town's drive. The copies are
 identical, so a match counts as found when it lies within 1 m of the scan modulo the tiling.
+
+--reuse takes the maps a --keep run left in --work instead of making them again (their make
+time is then not measured), so that search settings such as --rotation-step-deg can be
+compared on the same maps.
 """
 
 from __future__ import annotations
@@ -111,11 +115,12 @@ def _memory_mb() -> tuple[float, float]:
     return (int(fields["VmRSS"].split()[0]) / 1024, int(fields["VmHWM"].split()[0]) / 1024)
 
 
-def measure_start(path: Path, n_queries: int, town: bool) -> dict:
+def measure_start(path: Path, n_queries: int, town: bool, rotation_step_deg: float) -> dict:
     """One start of a localiser's search on the map at path, then n_queries queries (scans of
     the town when town, else turned references)."""
     started = time.perf_counter()
-    index = MatchedFilterIndex(ReferenceMap.load(path), SearchParams(backend="numpy"))
+    index = MatchedFilterIndex(ReferenceMap.load(path),
+                               SearchParams(backend="numpy", rotation_step_deg=rotation_step_deg))
     start_s = time.perf_counter() - started
     rng = np.random.default_rng(1)
     if town:
@@ -163,6 +168,11 @@ def main() -> None:
     parser.add_argument("--grid-km2", type=float, help="also render the simulator's town "
                         "tiled to this many km^2 and measure it (1 km^2: ~250k references)")
     parser.add_argument("--workers", type=int, default=2, help="rendering processes")
+    parser.add_argument("--reuse", action="store_true",
+                        help="use the maps a --keep run left in --work")
+    parser.add_argument("--rotation-step-deg", type=float,
+                        default=SearchParams.rotation_step_deg,
+                        help="the search's global rotation step (default: the default's)")
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -172,7 +182,8 @@ def main() -> None:
         elif action == "render":
             result = {"seconds": rendered_grid_file(float(number), path, args.workers)}
         else:
-            result = measure_start(path, int(number), town=action == "measure-town")
+            result = measure_start(path, int(number), town=action == "measure-town",
+                                   rotation_step_deg=args.rotation_step_deg)
         print(json.dumps(result))
         return
     work = Path(args.work or tempfile.mkdtemp(prefix="mf_lpr_scale_"))
@@ -183,9 +194,13 @@ def main() -> None:
     rows = []
     for name, make, size, measure in runs:
         path = work / f"{name}.mfmap"
-        made = _child(make, str(path), size, "--workers", str(args.workers))
-        first = _child(measure, str(path), str(args.queries))
-        second = _child(measure, str(path), str(args.queries))
+        if args.reuse and path.exists():
+            made = {"seconds": float("nan")}
+        else:
+            made = _child(make, str(path), size, "--workers", str(args.workers))
+        step = ("--rotation-step-deg", str(args.rotation_step_deg))
+        first = _child(measure, str(path), str(args.queries), *step)
+        second = _child(measure, str(path), str(args.queries), *step)
         cache = cache_path(path)
         label = (f"{second['references']:,}" if make == "generate" else
                  f"{second['references']:,} (town grid, {size} km^2)")

@@ -259,7 +259,9 @@ def _block_counts(cells: np.ndarray, factor: int) -> np.ndarray:
     return counts
 
 
-@lru_cache(maxsize=64)
+# A search prepares one set per global angle and the global set (73 at a 5-degree step); a
+# cache smaller than that would evict and recompute tables on every query.
+@lru_cache(maxsize=256)
 def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """For each angle, the flat source cell of every output cell and whether it is inside."""
     centres = np.arange(size) - size / 2 + 0.5
@@ -280,7 +282,7 @@ def _angle_key(angles_deg: np.ndarray) -> tuple[float, ...]:
 
 
 def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> None:
-    """Compute the rotation tables of these angle sets now (they are cached, at most 64 sets):
+    """Compute the rotation tables of these angle sets now (they are cached, at most 256 sets):
     a long-running search then allocates nothing new for rotations."""
     for angles in angle_sets:
         _rotation_sources(size, _angle_key(angles))

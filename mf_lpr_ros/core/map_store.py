@@ -18,9 +18,11 @@ map, so a crash leaves either the old or the new map, never a torn one.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import struct
+import threading
 import zlib
 from dataclasses import asdict
 from pathlib import Path
@@ -73,6 +75,9 @@ class ReferenceMap:
         self.cloud_points: np.ndarray | None = None
         self.cloud_offsets: np.ndarray | None = None
         self._pending: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray | None]] = []
+        # A node appends from its scan callback while a timer saves: appends, the flush of
+        # pending references and save's snapshot of the arrays happen one at a time.
+        self._lock = threading.RLock()
         # Set by load: the file, its header checksum (which changes with any content, so files
         # derived from the map, the prefilter cache, know which map they belong to) and how
         # many references the file holds (later appends are not in it).
@@ -105,6 +110,15 @@ class ReferenceMap:
     def __len__(self) -> int:
         self._flush_pending()
         return len(self._stamps)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
 
     @property
     def occupancy_bits(self) -> np.ndarray:
@@ -148,14 +162,16 @@ class ReferenceMap:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise ValueError("reference pose must be a finite 4x4 matrix")
-        if cloud is not None and self._pending_or_stored_without_clouds():
-            raise ValueError("this map keeps no reference clouds; add every reference without one")
-        if cloud is None and self.cloud_offsets is not None:
-            raise ValueError("this map keeps reference clouds; every reference needs one")
         packed = np.packbits(occupancy.astype(bool).ravel())
         kept = None if cloud is None else np.asarray(cloud, dtype=np.float32)[:, :3]
-        self._pending.append((packed, pose, float(stamp), int(source_index), kept))
-        return len(self._stamps) + len(self._pending) - 1
+        with self._lock:
+            if cloud is not None and self._pending_or_stored_without_clouds():
+                raise ValueError("this map keeps no reference clouds; add every reference "
+                                 "without one")
+            if cloud is None and self.cloud_offsets is not None:
+                raise ValueError("this map keeps reference clouds; every reference needs one")
+            self._pending.append((packed, pose, float(stamp), int(source_index), kept))
+            return len(self._stamps) + len(self._pending) - 1
 
     def _pending_or_stored_without_clouds(self) -> bool:
         if len(self._stamps) and self.cloud_offsets is None:
@@ -163,8 +179,11 @@ class ReferenceMap:
         return any(entry[4] is None for entry in self._pending)
 
     def _flush_pending(self) -> None:
-        if not self._pending:
-            return
+        with self._lock:
+            if self._pending:
+                self._flush_locked()
+
+    def _flush_locked(self) -> None:
         packed, poses, stamps, sources, clouds = zip(*self._pending)
         self._pending = []
         self._occupancy_bits = np.concatenate([self._occupancy_bits, np.stack(packed)])
@@ -209,27 +228,31 @@ class ReferenceMap:
                 "the map's parameters")
 
     def save(self, path: str | Path) -> None:
-        """Write the map atomically (temporary file, fsync, rename)."""
-        self._flush_pending()
+        """Write the map atomically (temporary file, fsync, rename): the references it held
+        when called, even while another thread appends."""
         path = Path(path)
-        arrays = {
-            "occupancy_bits": np.ascontiguousarray(self.occupancy_bits),
-            "poses": np.ascontiguousarray(self.poses, dtype="<f8"),
-            "stamps": np.ascontiguousarray(self.stamps, dtype="<f8"),
-            "source_indices": np.ascontiguousarray(self.source_indices, dtype="<i8"),
-        }
-        if self.cloud_offsets is not None and self.cloud_points is not None:
-            arrays["cloud_points"] = np.ascontiguousarray(self.cloud_points, dtype="<f4")
-            arrays["cloud_offsets"] = np.ascontiguousarray(self.cloud_offsets, dtype="<i8")
+        with self._lock:
+            self._flush_pending()
+            # The arrays are replaced, never changed in place, on appending: these stay whole.
+            arrays = {
+                "occupancy_bits": np.ascontiguousarray(self._occupancy_bits),
+                "poses": np.ascontiguousarray(self._poses, dtype="<f8"),
+                "stamps": np.ascontiguousarray(self._stamps, dtype="<f8"),
+                "source_indices": np.ascontiguousarray(self._source_indices, dtype="<i8"),
+            }
+            if self.cloud_offsets is not None and self.cloud_points is not None:
+                arrays["cloud_points"] = np.ascontiguousarray(self.cloud_points, dtype="<f4")
+                arrays["cloud_offsets"] = np.ascontiguousarray(self.cloud_offsets, dtype="<i8")
+            metadata = copy.deepcopy(self.metadata)
         table: dict[str, dict[str, Any]] = {}
         header: dict[str, Any] = {
             "format_version": FORMAT_VERSION,
             "writer": f"mf_lpr_ros {__version__}",
-            "n_references": int(len(self.stamps)),
+            "n_references": int(len(arrays["stamps"])),
             "descriptor": asdict(self.params),
             "frame_id": self.frame_id,
             "sensor_frame_id": self.sensor_frame_id,
-            "metadata": self.metadata,
+            "metadata": metadata,
             "arrays": table,
         }
         # Offsets depend on the header size, which depends on the offsets: iterate to a fixpoint.

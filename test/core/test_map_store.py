@@ -120,3 +120,44 @@ def test_header_is_self_describing(tmp_path, rng):
     assert header["descriptor"]["voxel_size"] == 0.4
     assert header["n_references"] == 5
     assert set(header["arrays"]) >= {"occupancy_bits", "poses", "stamps"}
+
+
+def test_saves_while_another_thread_appends_are_whole_maps(tmp_path, rng):
+    """A node's timer saves while its scan callback appends (and counts, which flushes):
+    every saved file must load, with one cloud per reference and no reference twice."""
+    import sys
+    import threading
+
+    reference_map = ReferenceMap(PARAMS)
+    occupancy = rng.random((PARAMS.size, PARAMS.size)) < 0.1
+    clouds = [rng.random((50 + k % 7, 3)).astype(np.float32) for k in range(400)]
+    done = threading.Event()
+
+    def append_and_count():
+        for k, cloud in enumerate(clouds):
+            reference_map.append(occupancy, np.eye(4), float(k), k, cloud=cloud)
+            len(reference_map)
+        done.set()
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)                     # switch threads as often as possible
+    try:
+        appender = threading.Thread(target=append_and_count)
+        appender.start()
+        saves = 0
+        while not done.is_set() or saves == 0:
+            path = tmp_path / f"save{saves}.mfmap"
+            reference_map.save(path)
+            loaded = ReferenceMap.load(path)
+            np.testing.assert_array_equal(loaded.stamps, np.arange(len(loaded)))
+            if len(loaded):
+                assert len(loaded.cloud_offsets) == len(loaded) + 1
+                for k in range(len(loaded)):
+                    assert len(loaded.cloud(k)) == len(clouds[k])
+            saves += 1
+        appender.join()
+    finally:
+        sys.setswitchinterval(interval)
+    final = tmp_path / "final.mfmap"
+    reference_map.save(final)
+    assert len(ReferenceMap.load(final)) == 400 and saves > 1
