@@ -97,7 +97,11 @@ def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
                          EXCLUDE_RECENT_S, radius_m=3.0)
     assert len(revisited) >= 5
-    assert len(closed & revisited) >= 0.5 * len(revisited)
+    # Newest scan only: at 3x the bag's rate a loaded machine drops scans, and a dropped
+    # revisit cannot close; most of those searched must.
+    searched = {stamp_index[round(stamp, 3)] for stamp in localiser.searched_stamps}
+    assert len(revisited & searched) >= 3
+    assert len(closed & revisited) >= 0.5 * len(revisited & searched)
 
     # The back end uses every closure and its path stays on the bag's poses.
     assert ros_graph.wait_for(lambda: back_end.counters["closures_received"] == len(closures))
