@@ -168,11 +168,12 @@ class SearchParams:
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
-        is then published. Needs maps that keep clouds (loop_closure mode keeps them; build
-        maps with keep_clouds). On the BALM handheld sequence confidence alone cannot separate
-        true revisits from look-alike places (both reach 0.36-0.40); ICP fitness does (true
-        revisits 0.71-0.85 but two at 0.64-0.66, look-alikes <= 0.66): the handheld preset
-        uses 0.68.
+        is then published. Needs maps that keep clouds: a map built with a config that
+        verifies this way keeps them (as with keep_clouds), and so does loop_closure mode. On
+        the BALM handheld sequence confidence alone cannot separate true revisits from
+        look-alike places (both reach 0.36-0.40); ICP fitness does (true revisits 0.71-0.85 but
+        two at 0.64-0.66, look-alikes <= 0.66): the handheld preset uses 0.68, and preset auto
+        uses it, instead of min_distinctiveness, for dense 360-degree sensors.
     distinct_radius_m: references farther than this from the match count as another place
         when MatchResult.distinctiveness compares the match with the best other place.
     min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).

@@ -18,7 +18,7 @@ from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, 
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import level_points
 from mf_lpr_ros.errors import InvalidPoseError
-from mf_lpr_ros.params import DescriptorParams
+from mf_lpr_ros.params import DescriptorParams, SearchParams
 
 
 class SpacingGate:
@@ -59,6 +59,12 @@ def descriptor_points(points: np.ndarray, pose: np.ndarray | None,
         raise InvalidPoseError("descriptor.level needs each scan's orientation; no pose is known "
                                "for this scan (give the scans poses, or set a pose source)")
     return level_points(points, pose[:3, :3])
+
+
+def keeps_clouds(search: SearchParams, asked: bool) -> bool:
+    """Whether a new map keeps its references' clouds: when asked, and whenever its
+    verification needs them (search.verify_fitness > 0: ICP against the reference's cloud)."""
+    return asked or search.verify_fitness > 0
 
 
 def describe_observation(params: DescriptorParams, *, reference: bool, stamp: float,

@@ -14,6 +14,7 @@ from mf_lpr_ros.core.references import (
     add_references,
     describe_observation,
     descriptor_points,
+    keeps_clouds,
 )
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
@@ -26,6 +27,8 @@ class MapBuilder:
     With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
     held back until the descriptor is derived from them (auto_choice then says what was
     chosen), and then described like every later scan; an existing map keeps its parameters.
+    Reference clouds are kept as core.references.keeps_clouds says (auto may choose ICP
+    verification, which needs them).
     Every scan offered joins the submap window (core.submap) when the descriptor has one, so a
     reference is described from the scans of its last descriptor.submap_m metres; a caller
     that already keeps the same window (the loop-closure localiser) passes it as submap.
@@ -36,7 +39,10 @@ class MapBuilder:
                  reference_map: ReferenceMap | None = None,
                  submap: Submap | None = None) -> None:
         self.map_path = None if map_path is None else Path(map_path)
-        self.keep_clouds = keep_clouds
+        # A map keeps clouds when asked, when its verification needs them, and (extended)
+        # when it already does: every reference then needs one.
+        self.keep_clouds = keeps_clouds(config.search, keep_clouds) or (
+            reference_map is not None and reference_map.has_clouds)
         self.auto_choice: str | None = None
         self.rejected_while_held = 0
         self._held: list[PairedScan] | None = None
@@ -85,6 +91,7 @@ class MapBuilder:
             raise
         self._held = None
         self.config = resolved
+        self.keep_clouds = keeps_clouds(resolved.search, self.keep_clouds)
         self.submap = _submap_for(resolved)
         metadata = dict(self.map.metadata, auto=map_metadata(profile, resolved.descriptor))
         self.map = ReferenceMap(resolved.descriptor, frame_id=self.map.frame_id,

@@ -215,7 +215,8 @@ class MapBuilderSettings:
         _one_of("if_exists", "error", "when map_path exists: error, append (extend it) or "
                 "overwrite", IF_EXISTS),
         _positive("save_period_s", 10.0, "seconds between periodic saves"),
-        NodeParameter("keep_clouds", False, "store reference clouds (enables ICP refinement)"),
+        NodeParameter("keep_clouds", False, "store reference clouds (enables ICP "
+                      "refinement); a map whose search verifies by ICP keeps them anyway"),
         *input_parameters("odom", "the poses of the reference scans",
                           "frame of the map ('' = the pose messages' frame)"),
         NodeParameter("global_map_topic", "", "a PointCloud2 global map topic (transient local) "

@@ -15,7 +15,7 @@ import numpy as np
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.references import DescribedScan, add_references
+from mf_lpr_ros.core.references import DescribedScan, add_references, keeps_clouds
 from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.pipeline.distributed import run_units
@@ -70,7 +70,8 @@ def build_maps(specs: list[SourceSpec], config: Config, *, combine: bool = False
         if combine and plans:
             config = plans[0].plan.config
         plans.append(_SourcePlan(spec, plan_references(spec.open(), config)))
-    units = [(f"{k}:{c}", (source.spec, chunk, source.plan.config, keep_clouds))
+    units = [(f"{k}:{c}", (source.spec, chunk, source.plan.config,
+                           keeps_clouds(source.plan.config.search, keep_clouds)))
              for k, source in enumerate(plans) for c, chunk in enumerate(source.chunks)]
     if client is None:
         described = {name: describe_chunk(*arguments) for name, arguments in progress_bar(

@@ -15,6 +15,7 @@ from mf_lpr_ros.core.references import (
     add_references,
     describe_observation,
     descriptor_points,
+    keeps_clouds,
     select_references,
 )
 from mf_lpr_ros.core.submap import SubmapWindow
@@ -79,12 +80,14 @@ def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
 def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
               progress: bool = True) -> ReferenceMap:
     """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres
-    (each described from its submap when the descriptor asks for one)."""
+    (each described from its submap when the descriptor asks for one), with the scans' clouds
+    when keep_clouds or when the resolved config verifies by ICP (references.keeps_clouds)."""
     plan = plan_references(sequence, config)
     reference_map = plan.new_map()
     sequence = with_submaps(sequence, SubmapWindow.for_descriptor(plan.config.descriptor))
     scans = progress_bar(sequence.iter_scans(plan.indices), total=len(plan.indices),
                          desc="build map", enabled=progress, unit="scan")
+    keep_cloud = keeps_clouds(plan.config.search, keep_clouds)
     add_references(reference_map, (described_scan(scan, plan.config.descriptor,
-                                                  keep_cloud=keep_clouds) for scan in scans))
+                                                  keep_cloud=keep_cloud) for scan in scans))
     return reference_map
