@@ -45,12 +45,17 @@ def held_to_at_least(search, minimum_s: float):
     return slowed
 
 
+# Where every received scan ends up.
+_ACCOUNTED = ("scans_searched", "scans_dropped", "scans_rejected", "search_errors")
+
+
 def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0,
          trace: bool = False, minimum_search_ms: float = 150.0) -> list[dict]:
     """Run the soak; one dict per sample (t, rss_mb, received, searched, dropped, latency and,
     with trace, traced_mb: memory held by Python and numpy objects, free of allocator noise).
     With trace, a last sample (t = None) is taken once the stream stopped and the node is idle:
-    what is still held then, against the idle start, is what the run retained."""
+    what is still held then, against the idle start, is what the run retained, and the scan
+    counters, which then account for every scan received."""
     import tracemalloc
 
     from sensor_msgs.msg import PointCloud2
@@ -103,8 +108,13 @@ def soak(seconds: float, references: int, hz: float, sample_every_s: float = 5.0
             stop.set()
             thread.join()
             if trace:
-                graph.wait_for(node.is_idle, 30)
-                samples.append({"t": None, "traced_mb": tracemalloc.get_traced_memory()[0] / 2**20})
+                # The stream's last messages may still be in delivery when the publisher stops.
+                graph.wait_for(lambda: node.is_idle() and node.counters["scans_received"] == sum(
+                    node.counters[name] for name in _ACCOUNTED), 30)
+                samples.append({"t": None, "traced_mb": tracemalloc.get_traced_memory()[0] / 2**20,
+                                "received": node.counters["scans_received"],
+                                "searched": node.counters["scans_searched"],
+                                "dropped": node.counters["scans_dropped"]})
                 tracemalloc.stop()
         finally:
             graph.close()

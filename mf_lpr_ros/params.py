@@ -172,8 +172,9 @@ class SearchParams:
         verifies this way keeps them (as with keep_clouds), and so does loop_closure mode. On
         the BALM handheld sequence confidence alone cannot separate true revisits from
         look-alike places (both reach 0.36-0.40); ICP fitness does (true revisits 0.71-0.85 but
-        two at 0.64-0.66, look-alikes <= 0.66): the handheld preset uses 0.68, and preset auto
-        uses it, instead of min_distinctiveness, for dense 360-degree sensors.
+        two at 0.64-0.66, look-alikes <= 0.66): the handheld preset uses 0.68. Not a default
+        elsewhere: on the HKU Avia keyframes and the held-out Mid-360 campus loop ICP fitness
+        accepts wrong places (docs/RESULTS.md, sessions 11 and 12).
     distinct_radius_m: references farther than this from the match count as another place
         when MatchResult.distinctiveness compares the match with the best other place.
     min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).

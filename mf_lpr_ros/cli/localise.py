@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.cli.common import SOURCE_HELP, add_common, config_from_arguments
-from mf_lpr_ros.core.auto_params import search_for_map
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import open_source
 
@@ -20,9 +19,7 @@ def cmd_localise(args: argparse.Namespace) -> int:
     from mf_lpr_ros.pipeline.localise import localise_sequence
 
     reference_map = ReferenceMap.load(args.map)
-    config = config_from_arguments(args)
-    search = search_for_map(config.search, reference_map.metadata) if config.auto \
-        else config.search
+    search = config_from_arguments(args).search
     if args.min_confidence is not None:
         search = replace(search, min_confidence=args.min_confidence)
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)

@@ -18,18 +18,8 @@ where it is applied (auto_descriptor):
   measured, logged and recorded, but the wedge footprint is not applied: it
   (DescriptorParams.field_of_view_deg) left recall on the HKU Avia keyframes unchanged (0.714)
   and let 2 false closures through where the full footprint published none, so it stays a
-  setting the user turns on;
-- verification (auto_search_changes): a dense 360-degree sensor (the one that keeps single
-  scans) is verified geometrically, by ICP fitness against the reference's stored cloud
-  (search.verify_fitness, the handheld preset's), in place of distinctiveness, which a small
-  site cannot give (every reference lies within distinct_radius_m of the match, or the whole
-  site looks alike: BALM at auto published 0 of its revisits, 17 with this, none false).
-  Confidence and odometry consistency stay. A narrow or sparse sensor keeps distinctiveness:
-  ICP between two partial views of a corridor fits well at the wrong place (on the HKU Avia
-  keyframes ICP verification published only false closures).
-What was measured and chosen is returned for the caller to log and to store in the map; a map
-built with auto records the search changes, and a localiser run with preset auto applies them
-(search_for_map).
+  setting the user turns on.
+What was measured and chosen is returned for the caller to log and to store in the map.
 """
 
 from __future__ import annotations
@@ -41,7 +31,7 @@ from typing import Iterable
 
 import numpy as np
 
-from mf_lpr_ros.config import Config, preset
+from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.descriptor import (
     FULL_CIRCLE_BELOW_DEG,
     largest_empty_run,
@@ -50,7 +40,7 @@ from mf_lpr_ros.core.descriptor import (
 )
 from mf_lpr_ros.core.pose import level_points
 from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.params import DescriptorParams, SearchParams
+from mf_lpr_ros.params import DescriptorParams
 
 SAMPLE_SCANS = 12
 GROUND_BIN_M = 0.1
@@ -64,9 +54,6 @@ SPARSE_RETURNS_PER_VOXEL = 2.5
 # scans) -> 0.62 (3 m), 0.56 (5 m), 0.34 (10 m, where recall@1 fell to 0.82: the window reaches
 # round corners); the HKU Avia keyframes are unchanged by any window.
 AUTO_SUBMAP_M = 3.0
-# The geometric verification of a dense 360-degree sensor: the handheld preset's (chosen on BALM).
-GEOMETRIC_VERIFICATION = {"verify_fitness": preset("handheld").search.verify_fitness,
-                          "min_distinctiveness": 0.0}
 
 
 @dataclass(frozen=True)
@@ -137,23 +124,6 @@ def auto_descriptor(profile: SensorProfile, base: DescriptorParams) -> Descripto
     return dataclasses.replace(base, **changes)
 
 
-def auto_search_changes(profile: SensorProfile) -> dict:
-    """The search parameters auto sets for this sensor (see the module doc): geometric
-    verification for a dense 360-degree sensor, nothing for a narrow or sparse one."""
-    return {} if needs_submaps(profile) else dict(GEOMETRIC_VERIFICATION)
-
-
-def search_for_map(search: SearchParams, map_metadata: dict, *,
-                   explicit: frozenset[str] = frozenset()) -> SearchParams:
-    """search with the changes a map built with preset auto recorded (its metadata's
-    auto.search), for a localiser run with preset auto; parameters the user set (explicit,
-    "search.<name>") keep the user's value."""
-    recorded = (map_metadata.get("auto") or {}).get("search") or {}
-    changes = {name: value for name, value in recorded.items()
-               if f"search.{name}" not in explicit}
-    return dataclasses.replace(search, **changes) if changes else search
-
-
 def needs_submaps(profile: SensorProfile) -> bool:
     """A narrow or a sparse sensor (see the module doc)."""
     return (profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG
@@ -164,9 +134,8 @@ def auto_config(clouds: list[np.ndarray], base: Config,
                 orientations: list[np.ndarray] | None = None) -> tuple[Config, SensorProfile]:
     """base with its descriptor derived from the clouds (no longer auto); and the profile."""
     profile = measure_sensor(clouds, orientations)
-    search = dataclasses.replace(base.search, **auto_search_changes(profile))
     return dataclasses.replace(base, descriptor=auto_descriptor(profile, base.descriptor),
-                               search=search, auto=False), profile
+                               auto=False), profile
 
 
 def resolve_for_sequence(config: Config, sequence) -> tuple[Config, SensorProfile | None]:
@@ -181,7 +150,7 @@ def resolve_for_sequence(config: Config, sequence) -> tuple[Config, SensorProfil
 def map_metadata(profile: SensorProfile, params: DescriptorParams) -> dict:
     """What a map built with preset auto records about the choice."""
     return {"preset": "auto", "sensor_profile": profile.to_dict(),
-            "choice": describe_choice(profile, params), "search": auto_search_changes(profile)}
+            "choice": describe_choice(profile, params)}
 
 
 def sample_indices(n_scans: int, count: int = SAMPLE_SCANS) -> np.ndarray:
@@ -200,11 +169,7 @@ def describe_choice(profile: SensorProfile, params: DescriptorParams) -> str:
             f"{params.voxel_size:.2f} m; {ground} -> z band [{params.z_min}, {params.z_max}] m; "
             f"level {params.level}; field of view {profile.horizontal_fov_deg:.0f} deg{narrow}; "
             f"{profile.returns_per_voxel:.1f} returns per occupied voxel -> "
-            + (f"submaps of {params.submap_m:g} m" if params.submap_m > 0 else "single scans")
-            + ("; verified by ICP fitness >= "
-               f"{GEOMETRIC_VERIFICATION['verify_fitness']:g} against the references' clouds "
-               "(kept in the map) instead of distinctiveness" if auto_search_changes(profile)
-               else ""))
+            + (f"submaps of {params.submap_m:g} m" if params.submap_m > 0 else "single scans"))
 
 
 def _ground_depth(points: np.ndarray, horizontal: np.ndarray) -> float:

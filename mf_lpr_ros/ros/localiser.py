@@ -41,7 +41,6 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.auto_params import search_for_map
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.errors import (
     InvalidCloudError,
@@ -127,11 +126,7 @@ class LocaliserLogic(LidarNodeMixin):
         reference_map = self._open_map()
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
-        search = settings.config.search
-        if settings.config.auto:
-            search = search_for_map(search, reference_map.metadata,
-                                    explicit=frozenset(settings.explicit))
-        config = Config(reference_map.params, search, settings.config.spacing_m)
+        config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
         if config.descriptor.level and not inputs.has_poses:
             raise ParameterFault("parameter pose_source must name a pose stream: "
                                  "descriptor.level needs each scan's roll and pitch")

@@ -6,14 +6,7 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import Config, config_from_dict, preset
-from mf_lpr_ros.core.auto_params import (
-    SAMPLE_SCANS,
-    auto_config,
-    auto_descriptor,
-    map_metadata,
-    measure_sensor,
-    search_for_map,
-)
+from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor
 from mf_lpr_ros.core.descriptor import voxel_size_for_density
 from mf_lpr_ros.core.pose import pose_matrix
 from mf_lpr_ros.datasets import open_source
@@ -96,55 +89,11 @@ def test_auto_is_a_preset_that_stays_auto_until_resolved(world):
         measure_sensor([np.full((10, 3), np.nan)])
 
 
-def _forward(clouds, width_deg=70.0):
-    """The clouds as a forward-looking sensor of width_deg sees them."""
-    return [c[np.abs(np.degrees(np.arctan2(c[:, 1], c[:, 0]))) < width_deg / 2] for c in clouds]
-
-
-def test_auto_verifies_a_dense_all_round_sensor_by_icp_and_a_narrow_one_as_before(world):
-    clouds = _scans(world)
-    dense, profile = auto_config(clouds, preset("auto"))
-    handheld = preset("handheld").search
-    assert dense.search.verify_fitness == handheld.verify_fitness > 0
-    assert dense.search.min_distinctiveness == 0.0
-    # Confidence and odometry consistency stay the defaults'.
-    assert dense.search.min_confidence == Config().search.min_confidence
-    assert dense.search.consistency_min_support == Config().search.consistency_min_support > 0
-    assert map_metadata(profile, dense.descriptor)["search"] == {
-        "verify_fitness": handheld.verify_fitness, "min_distinctiveness": 0.0}
-    assert "ICP" in map_metadata(profile, dense.descriptor)["choice"]
-    narrow, narrow_profile = auto_config(_forward(clouds), preset("auto"))
-    assert narrow.descriptor.submap_m > 0
-    assert narrow.search == Config().search
-    assert map_metadata(narrow_profile, narrow.descriptor)["search"] == {}
-
-
-def test_a_localiser_with_auto_takes_the_verification_its_map_recorded(world):
-    clouds = _scans(world)
-    resolved, profile = auto_config(clouds, preset("auto"))
-    metadata = {"auto": map_metadata(profile, resolved.descriptor)}
-    search = Config().search
-    assert search_for_map(search, metadata) == resolved.search
-    # What the user set explicitly stays the user's.
-    kept = search_for_map(search, metadata, explicit=frozenset({"search.verify_fitness"}))
-    assert kept.verify_fitness == search.verify_fitness
-    assert kept.min_distinctiveness == 0.0
-    # Maps built before auto chose a verification, and maps of other presets, change nothing.
-    older = {"auto": {key: value for key, value in metadata["auto"].items() if key != "search"}}
-    assert search_for_map(search, older) == search
-    assert search_for_map(search, {}) == search
-
-
 def test_build_map_with_auto_records_its_choice(world, tmp_path):
     write_kitti_sequence(tmp_path / "seq", world, route(20), seed=3)
     reference_map = build_map(open_source(tmp_path / "seq"), preset("auto"), progress=False)
     choice = reference_map.metadata["auto"]
     assert choice["preset"] == "auto"
-    # Its verification is ICP against the references' clouds, so the map keeps them unasked;
-    # a named preset that does not verify by ICP keeps none.
-    assert choice["search"]["verify_fitness"] > 0 and reference_map.has_clouds
-    assert not build_map(open_source(tmp_path / "seq"), preset("default"),
-                         progress=False).has_clouds
     ground = choice["sensor_profile"]["ground_below_sensor_m"]
     assert ground == pytest.approx(1.7, abs=0.1)
     assert reference_map.params.z_min == pytest.approx(0.5 - ground, abs=0.006)
@@ -178,7 +127,6 @@ def test_live_map_builder_holds_scans_until_auto_is_derived(world):
         builder.offer(PairedScan(index, float(index), points, pose))
     assert not builder.waiting_for_auto
     assert "preset auto" in builder.auto_choice
-    assert builder.config.search.verify_fitness > 0 and builder.map.has_clouds
     assert builder.map.params.z_min == pytest.approx(
         0.5 - builder.map.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"], abs=0.006)
     # Every scan moved >= 2 m: the held-back scans became references too, in order.

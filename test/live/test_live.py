@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -93,6 +94,31 @@ def test_map_builder_keeps_one_reference_per_spacing_and_survives_a_failed_save(
         builder.save()
     assert builder.unsaved == 1 and len(builder.map) == 6
     assert len(ReferenceMap.load(tmp_path / "m.mfmap")) == 5
+
+
+def test_a_map_keeps_the_clouds_its_verification_needs(world, tmp_path):
+    """handheld verifies by ICP against the reference's cloud: its maps keep clouds unasked,
+    and a relocalising localiser then takes them (it refuses a map without clouds)."""
+    from mf_lpr_ros.datasets import open_source
+    from mf_lpr_ros.pipeline.mapping import build_map
+    from mf_lpr_ros.sim.synthetic import write_kitti_sequence
+
+    rng = np.random.default_rng(4)
+    builders = {name: MapBuilder(preset(name), None) for name in ("handheld", "kitti")}
+    for index, x in enumerate(np.arange(0.0, 4.0, 1.0)):
+        points, pose = scan_world(world, x, 0.0, 0.0, rng)
+        for builder in builders.values():
+            builder.offer(PairedScan(index, float(index), points, pose))
+    assert builders["handheld"].map.has_clouds and not builders["kitti"].map.has_clouds
+    Localiser(builders["handheld"].map, preset("handheld"))
+    verifying = dataclasses.replace(preset("kitti"), search=preset("handheld").search)
+    with pytest.raises(ValueError, match="keeps reference clouds"):
+        Localiser(builders["kitti"].map, verifying)
+    write_kitti_sequence(tmp_path / "seq", world, route(6), seed=5)
+    sequence = open_source(tmp_path / "seq")
+    assert build_map(sequence, preset("handheld"), progress=False).has_clouds
+    assert not build_map(sequence, preset("kitti"), progress=False).has_clouds
+    assert build_map(sequence, preset("kitti"), keep_clouds=True, progress=False).has_clouds
 
 
 def test_loop_closure_localiser_only_searches_old_enough_references(world):

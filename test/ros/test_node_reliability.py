@@ -16,7 +16,6 @@ from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.ros.localiser import LocaliserNode
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.sim.synthetic import scan_world
@@ -129,14 +128,3 @@ def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world,
     assert len(saved) == n_scans
     assert saved.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
     assert saved.params.z_min is not None and saved.params.z_min < 0
-    # This dense 360-degree sensor is verified by ICP: the map kept its clouds unasked, and a
-    # localiser run with preset auto verifies as the map recorded, unless told otherwise.
-    assert saved.has_clouds
-    recorded = saved.metadata["auto"]["search"]["verify_fitness"]
-    localiser = ros_graph.start(LocaliserNode, preset="auto", map_path=str(map_path))
-    assert localiser.localiser.search.verify_fitness == recorded > 0
-    assert localiser.localiser.search.min_distinctiveness == 0.0
-    told = ros_graph.start(LocaliserNode, preset="auto", map_path=str(map_path),
-                           **{"search.verify_fitness": 0.0})
-    assert told.localiser.search.verify_fitness == 0.0
-    assert told.localiser.search.min_distinctiveness == 0.0
