@@ -150,8 +150,10 @@ class SpectralBank(NumpyArrays):
         return self._to_host(best)
 
     def best_of_subset(self, operator: np.ndarray, references: np.ndarray,
-                       chunk_size: int = 256) -> tuple[np.ndarray, np.ndarray | None]:
-        """best_per_reference for the given references only, in their order.
+                       chunk_size: int = 256, allowed: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
+        """best_per_reference for the given references only, in their order; with allowed
+        ((n, A) bool on the host), only the (reference, query) pairs it allows.
 
         Also returns the whole score volume (as correlate_subset) when the references fit one
         chunk, so that locating a few of them needs no second pass over the operator.
@@ -161,13 +163,37 @@ class SpectralBank(NumpyArrays):
         volume = None
         for start in range(0, len(references), chunk_size):
             chunk = references[start: start + chunk_size]
-            volume = self.correlate_subset(operator, chunk)
+            volume = self._correlate_some(operator, chunk, None if allowed is None
+                                          else allowed[start: start + len(chunk)])
             best[start: start + len(chunk)] = self._amax(volume.reshape(-1, len(chunk)), axis=0)
         return self._to_host(best), (volume if len(references) <= chunk_size else None)
 
-    def locate(self, operator: np.ndarray, references: np.ndarray) -> np.ndarray:
+    def locate(self, operator: np.ndarray, references: np.ndarray,
+               allowed: np.ndarray | None = None) -> np.ndarray:
         """Best alignment of each reference: (n, 4) rows of query a, di, dj and the score."""
-        return self.peaks(self.correlate_subset(operator, references))
+        return self.peaks(self._correlate_some(operator, references, allowed))
+
+    def _correlate_some(self, operator: np.ndarray, references: np.ndarray,
+                        allowed: np.ndarray | None) -> np.ndarray:
+        """correlate_subset, or only the pairs allowed[k, a] permits (the others -inf), one
+        query at a time: a pair not allowed costs nothing."""
+        if allowed is None:
+            return self.correlate_subset(operator, references)
+        n_shifts = 2 * self.max_shift + 1
+        n_queries = allowed.shape[1]
+        by_query = self._full((n_queries, n_shifts, n_shifts, len(references)), -np.inf)
+        per_query = operator.reshape(self.n_freqs, 2, n_queries, n_shifts, 2 * self.height)
+        # Gathered once: gathering columns from the whole bank for every query costs more than
+        # the products.
+        candidates = self._bank[:, :, self._index(references)]
+        for query in np.flatnonzero(allowed.any(axis=0)):
+            picked = np.flatnonzero(allowed[:, query])
+            rows = per_query[:, :, query].reshape(self.n_freqs, 2 * n_shifts, 2 * self.height)
+            spectra = rows @ candidates[:, :, self._index(picked)]
+            scores = self._inverse @ spectra.reshape(2 * self.n_freqs, n_shifts * len(picked))
+            by_query[query][:, :, self._index(picked)] = scores.reshape(n_shifts, n_shifts,
+                                                                        len(picked))
+        return by_query.swapaxes(0, 1)
 
     def peaks(self, volume: np.ndarray, columns: np.ndarray | None = None) -> np.ndarray:
         """As locate, from a correlate_subset volume (only the given columns)."""

@@ -117,9 +117,20 @@ class PolarSpectrumIndex(NumpyArrays):
             for start in range(0, stop, _SCORED_TOGETHER)])
 
     def _best_over_angles(self, features, query):
+        return self._amax(self._over_angles(features, query), axis=1)
+
+    def _over_angles(self, features, query):
+        """(n, n_angles) circular correlations of n references' features with the query's."""
         cross = (features @ query)[:, :, 0]
-        correlation = cross.real.T @ self._inverse_real + cross.imag.T @ self._inverse_imag
-        return self._amax(correlation, axis=1)
+        return cross.real.T @ self._inverse_real + cross.imag.T @ self._inverse_imag
+
+    def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
+        """Degrees in [0, 180) by which the query image is best turned onto each reference (its
+        spectrum's best circular shift): the yaw between them modulo half a turn."""
+        query = self._from_host(self.features(image[None])[0]).conj()[:, :, None]
+        correlation = self._over_angles(self._bank[:, self._index(references)], query)
+        best, _ = self._argmax_rows(correlation.T)
+        return np.asarray(best, dtype=np.float64) * (180.0 / self.n_angles)
 
     def top(self, image: np.ndarray, k: int, stop: int | None = None) -> np.ndarray:
         """Indices of the k best-ranked references in [0, stop), best first."""

@@ -239,9 +239,11 @@ class MatchedFilterIndex:
             columns = np.arange(len(searched))
         else:
             columns = searched
+        allowed = self._allowed_headings(low_queries[0], searched) if prefiltered else None
         prefilter_done = time.perf_counter()
         if prefiltered or self.spectra_on_demand:
-            scores, volume = self.bank.best_of_subset(operator, columns, self.search.chunk_size)
+            scores, volume = self.bank.best_of_subset(operator, columns, self.search.chunk_size,
+                                                      allowed)
         else:
             scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
         if self.search.score_normalisation == "cosine":
@@ -254,7 +256,8 @@ class MatchedFilterIndex:
 
         finalists = order[: self.search.top_n]
         located = (self.bank.peaks(volume, finalists) if volume is not None
-                   else self.bank.locate(operator, columns[finalists]))
+                   else self.bank.locate(operator, columns[finalists],
+                                         None if allowed is None else allowed[finalists]))
         peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
                  for reference, (angle_index, *_) in zip(searched[finalists], located)]
         peaks.sort(key=lambda peak: -peak.score)
@@ -277,6 +280,17 @@ class MatchedFilterIndex:
                              "prefilter": (prefilter_done - prepared) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
         return result
+
+    def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray
+                          ) -> np.ndarray | None:
+        """(len(searched), global angles) bool: the headings within global_yaw_window_deg of
+        each candidate's prefilter angle, or of the opposite one; None when the window is off."""
+        window = self.search.global_yaw_window_deg
+        if window <= 0:
+            return None
+        angles = self.prefilter.angles(low_query, searched)
+        offset = (self.global_angles[None, :] - angles[:, None] + 90.0) % 180.0 - 90.0
+        return np.abs(offset) <= window
 
     def _shortest_shift_first(self, peaks: list["_LocalPeak"]) -> list["_LocalPeak"]:
         """peaks (best score first) with the one of least shift among those scoring within

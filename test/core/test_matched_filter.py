@@ -75,3 +75,32 @@ def test_shifted_copy_peaks_at_its_shift(rng):
     surface = correlate_fft2(image[None], reference, 8)[0]
     row, col = np.unravel_index(np.argmax(surface), surface.shape)
     assert (row - 8, col - 8) == (5, -3)
+
+
+def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):
+    size, max_shift = 14, 5
+    references = (rng.random((9, size, size)) < 0.3).astype(np.float32) - 0.15
+    queries = (rng.random((4, size, size)) < 0.3).astype(np.float32) - 0.15
+    bank = SpectralBank(size, size, max_shift)
+    bank.append(references)
+    operator = bank.prepare_queries(queries)
+    subset = np.array([7, 0, 4, 8, 2])
+    allowed = rng.random((len(subset), len(queries))) < 0.5
+    allowed[3] = False          # a reference with no pair allowed scores -inf
+    allowed[:, 1] = False       # a query no reference may pair with is never correlated
+    allowed[0, 0] = allowed[2, 2] = True
+    full = bank.correlate_subset(operator, subset)
+    best, volume = bank.best_of_subset(operator, subset, allowed=allowed)
+    assert volume.shape == full.shape
+    for k in range(len(subset)):
+        for a in range(len(queries)):
+            if allowed[k, a]:
+                np.testing.assert_allclose(volume[:, a, :, k], full[:, a, :, k], atol=1e-4)
+            else:
+                assert np.all(volume[:, a, :, k] == -np.inf)
+        expected = full[:, allowed[k], :, k].max() if allowed[k].any() else -np.inf
+        assert best[k] == pytest.approx(expected, abs=1e-4)
+    # Located only among the allowed pairs, whether from the volume or a second pass.
+    located = bank.locate(operator, subset[[0, 2]], allowed[[0, 2]])
+    np.testing.assert_allclose(located, bank.peaks(volume, [0, 2]), atol=1e-4)
+    assert all(allowed[[0, 2][i], int(row[0])] for i, row in enumerate(located))

@@ -47,6 +47,20 @@ def test_rotated_and_shifted_copy_ranks_first():
     assert list(index.top(low(places[2]), 4, stop=10)) == list(np.argsort(-scores)[:4])
 
 
+@pytest.mark.parametrize("turn_deg", [0.0, 37.0, 151.0, 250.0])
+def test_the_prefilter_angle_is_the_turn_back_modulo_half_a_turn(turn_deg):
+    """A view turned by turn_deg is turned back onto its place by -turn_deg: the angle of
+    the best circular shift, known modulo 180 degrees, to within a bin (5.6 degrees)."""
+    rng = np.random.default_rng(5)
+    places = [blobs(rng) for _ in range(6)]
+    index = PolarSpectrumIndex(60)
+    index.append(np.stack([low(p) for p in places]))
+    turned = np.roll(rotate_occupancy(places[2], np.array([turn_deg]))[0], (2, -3), (0, 1))
+    angle = index.angles(low(turned), np.array([2, 4]))
+    assert angle.shape == (2,) and np.all((0 <= angle) & (angle < 180))
+    assert abs((angle[0] + turn_deg + 90.0) % 180.0 - 90.0) <= 180.0 / index.n_angles
+
+
 def test_index_grows_beyond_its_capacity():
     rng = np.random.default_rng(4)
     places = np.stack([low(blobs(rng)) for _ in range(9)])

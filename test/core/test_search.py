@@ -32,11 +32,14 @@ def synthetic_map(world):
 @pytest.mark.parametrize("truth,expected_ref", [((1.3, -0.7, 0.5), 0), ((24.1, 1.9, -2.0), 1),
                                                 ((-0.5, 26.2, 3.0), 2), ((-23.7, -11.1, 1.2), 3),
                                                 ((21.45, 18.2, -1.7), 4)])
-@pytest.mark.parametrize("prefilter_top_k", [0, 2])
-def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref, prefilter_top_k):
-    # top_k 2 of 5 references: the polar-spectrum prefilter must keep the right one.
+@pytest.mark.parametrize("prefilter_top_k,yaw_window_deg", [(0, 0.0), (2, 0.0), (2, 10.0)])
+def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref, prefilter_top_k,
+                                      yaw_window_deg):
+    # top_k 2 of 5 references: the polar-spectrum prefilter must keep the right one (and,
+    # with a yaw window, its angle must hold the right heading).
     points, _ = scan_world(world, *truth, np.random.default_rng(1))
-    result = MatchedFilterIndex(synthetic_map, SearchParams(prefilter_top_k=prefilter_top_k)
+    result = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=prefilter_top_k, global_yaw_window_deg=yaw_window_deg)
                                 ).query(describe_points(points, PARAMS))
     assert result.reference_index == expected_ref
     assert np.hypot(*(result.pose[:2] - truth[:2])) < 0.15

@@ -39,6 +39,13 @@ def test_bank_operations_match_numpy():
     np.testing.assert_allclose(gpu.peaks(gpu_volume, [1, 2]), cpu.peaks(cpu_volume, [1, 2]),
                                atol=1e-4)
     np.testing.assert_allclose(gpu.locate(gpu_op, subset), cpu.locate(cpu_op, subset), atol=1e-4)
+    allowed = np.array([[True, False, True], [False, False, True], [True, True, False]])
+    (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (
+        cpu.best_of_subset(cpu_op, subset, allowed=allowed),
+        gpu.best_of_subset(gpu_op, subset, allowed=allowed))
+    np.testing.assert_allclose(gpu_best, cpu_best, atol=1e-4)
+    np.testing.assert_allclose(gpu.locate(gpu_op, subset, allowed),
+                               cpu.locate(cpu_op, subset, allowed), atol=1e-4)
     np.testing.assert_allclose(gpu.norms, cpu.norms)
     np.testing.assert_allclose(torch_backend.correlate_fft2(queries, references[3], 4),
                                correlate_fft2(queries, references[3], 4), atol=1e-4)
@@ -52,6 +59,8 @@ def test_prefilter_matches_numpy():
         index.append(images[3:])
     np.testing.assert_allclose(gpu.scores(images[4], stop=6), cpu.scores(images[4], stop=6),
                                atol=1e-5)
+    np.testing.assert_array_equal(gpu.angles(images[4], np.array([4, 1])),
+                                  cpu.angles(images[4], np.array([4, 1])))
 
 
 def test_search_results_match_numpy(world, tmp_path):
@@ -63,8 +72,10 @@ def test_search_results_match_numpy(world, tmp_path):
                              float(i), i)
     reference_map.save(tmp_path / "four.mfmap")
     statuses = []
-    for top_k, spectra in ((0, "memory"), (2, "memory"), (2, "on_demand"), (2, "on_demand")):
-        search = SearchParams(prefilter_top_k=top_k, backend="numpy", reference_spectra=spectra)
+    for top_k, spectra, window in ((0, "memory", 0.0), (2, "memory", 10.0),
+                                   (2, "on_demand", 0.0), (2, "on_demand", 10.0)):
+        search = SearchParams(prefilter_top_k=top_k, backend="numpy", reference_spectra=spectra,
+                              global_yaw_window_deg=window)
         cpu = MatchedFilterIndex(reference_map, search)
         # On demand from a file: the first start writes the prefilter cache, the second
         # adopts it on the device.

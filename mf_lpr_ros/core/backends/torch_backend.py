@@ -43,6 +43,9 @@ class TorchArrays:
     def _empty_scores(self, count: int) -> torch.Tensor:
         return torch.empty(count, dtype=torch.float32, device=self.device)
 
+    def _full(self, shape: tuple[int, ...], value: float) -> torch.Tensor:
+        return torch.full(shape, value, dtype=torch.float32, device=self.device)
+
     @staticmethod
     def _amax(values: torch.Tensor, axis: int) -> torch.Tensor:
         return values.amax(dim=axis)
