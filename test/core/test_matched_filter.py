@@ -38,13 +38,21 @@ def test_bank_equals_direct_correlation(rng, size, max_shift):
                                        direct, atol=1e-3)
 
 
-def test_global_best_and_location_match_brute_force(rng):
-    size, max_shift = 14, 5
+MAX_SHIFT = 5
+
+
+def random_bank(rng, size=14):
+    """A bank of 9 random references and the operator of 4 random queries."""
     references = (rng.random((9, size, size)) < 0.3).astype(np.float32) - 0.15
     queries = (rng.random((4, size, size)) < 0.3).astype(np.float32) - 0.15
-    bank = SpectralBank(size, size, max_shift)
+    bank = SpectralBank(size, size, MAX_SHIFT)
     bank.append(references)
-    operator = bank.prepare_queries(queries)
+    return bank, references, queries, bank.prepare_queries(queries)
+
+
+def test_global_best_and_location_match_brute_force(rng):
+    max_shift = MAX_SHIFT
+    bank, references, queries, operator = random_bank(rng)
     best = bank.best_per_reference(operator, chunk_size=4)
     brute = np.array([[correlate_direct(q, r, max_shift) for q in queries] for r in references])
     np.testing.assert_allclose(best, brute.reshape(9, -1).max(axis=1), atol=1e-3)
@@ -78,12 +86,7 @@ def test_shifted_copy_peaks_at_its_shift(rng):
 
 
 def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):
-    size, max_shift = 14, 5
-    references = (rng.random((9, size, size)) < 0.3).astype(np.float32) - 0.15
-    queries = (rng.random((4, size, size)) < 0.3).astype(np.float32) - 0.15
-    bank = SpectralBank(size, size, max_shift)
-    bank.append(references)
-    operator = bank.prepare_queries(queries)
+    bank, _, queries, operator = random_bank(rng)
     subset = np.array([7, 0, 4, 8, 2])
     allowed = rng.random((len(subset), len(queries))) < 0.5
     allowed[3] = False          # a reference with no pair allowed scores -inf
