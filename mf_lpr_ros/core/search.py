@@ -290,7 +290,8 @@ class MatchedFilterIndex:
             return None
         angles = self.prefilter.angles(low_query, searched)
         offset = (self.global_angles[None, :] - angles[:, None] + 90.0) % 180.0 - 90.0
-        return np.abs(offset) <= window
+        # Never narrower than half a step: each candidate keeps at least its nearest heading.
+        return np.abs(offset) <= max(window, self.search.rotation_step_deg / 2)
 
     def _shortest_shift_first(self, peaks: list["_LocalPeak"]) -> list["_LocalPeak"]:
         """peaks (best score first) with the one of least shift among those scoring within
