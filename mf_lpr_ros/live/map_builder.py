@@ -27,8 +27,8 @@ class MapBuilder:
     With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
     held back until the descriptor is derived from them (auto_choice then says what was
     chosen), and then described like every later scan; an existing map keeps its parameters.
-    Reference clouds are kept as core.references.keeps_clouds says (auto may choose ICP
-    verification, which needs them).
+    Reference clouds are kept as core.references.keeps_clouds says (a search that verifies by
+    ICP needs them).
     Every scan offered joins the submap window (core.submap) when the descriptor has one, so a
     reference is described from the scans of its last descriptor.submap_m metres; a caller
     that already keeps the same window (the loop-closure localiser) passes it as submap.
