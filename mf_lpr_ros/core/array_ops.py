@@ -30,10 +30,6 @@ class NumpyArrays:
         return np.empty(count, dtype=np.float32)
 
     @staticmethod
-    def _full(shape: tuple[int, ...], value: float):
-        return np.full(shape, value, dtype=np.float32)
-
-    @staticmethod
     def _amax(values, axis: int):
         # max over a leading axis is memory-bound and ~50x cheaper than argmax.
         return values.max(axis=axis)

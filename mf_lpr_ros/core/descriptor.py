@@ -262,8 +262,9 @@ def _block_counts(cells: np.ndarray, factor: int) -> np.ndarray:
 # A search prepares one set per global angle and the global set (73 at a 5-degree step); a
 # cache smaller than that would evict and recompute tables on every query.
 @lru_cache(maxsize=256)
-def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """For each angle, the flat source cell of every output cell and whether it is inside."""
+def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> np.ndarray:
+    """For each angle, the flat source cell of every output cell (A, size^2) int32; size^2, one
+    past the last cell, for a source outside the window."""
     centres = np.arange(size) - size / 2 + 0.5
     x, y = np.meshgrid(centres, centres)
     theta = np.deg2rad(np.asarray(angles_deg))[:, None, None]
@@ -273,8 +274,8 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> tuple[np.ndar
     cols = np.floor(src_x + size / 2).astype(np.int64)
     rows = np.floor(src_y + size / 2).astype(np.int64)
     inside = (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size)
-    flat = np.where(inside, rows * size + cols, 0).astype(np.int32).reshape(len(angles_deg), -1)
-    return flat, inside.reshape(len(angles_deg), -1)
+    flat = np.where(inside, rows * size + cols, size * size)
+    return flat.astype(np.int32).reshape(len(angles_deg), -1)
 
 
 def _angle_key(angles_deg: np.ndarray) -> tuple[float, ...]:
@@ -294,9 +295,11 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray) -> np.ndarra
     Nearest-neighbour; cells whose source falls outside the window become unoccupied.
     """
     size = occupancy.shape[0]
-    flat, inside = _rotation_sources(size, _angle_key(angles_deg))
-    rotated = occupancy.ravel()[flat] & inside
-    return rotated.reshape(-1, size, size)
+    # One unoccupied cell past the last: where every source outside the window reads.
+    cells = np.zeros(size * size + 1, dtype=bool)
+    cells[:-1] = occupancy.ravel()
+    return np.take(cells, _rotation_sources(size, _angle_key(angles_deg))).reshape(
+        -1, size, size)
 
 
 def auto_voxel_size(point_clouds: list[np.ndarray]) -> float:

@@ -7,10 +7,10 @@ Every function here computes, for query Q and reference R (both H x W, zero outs
 returned as an array indexed [..., di + max_shift, dj + max_shift].
 
 SpectralBank is the many-references engine: it transforms each reference once along x (rows
-stay spatial), so that one query batch against a block of references is two dense real matrix
-products per block -- a direct correlation along y inside the first (the query side is
-expanded into its row shifts), and an inverse DFT restricted to the shift window in the
-second. Both run at BLAS speed and only the window is ever computed.
+stay spatial), so that one query batch against a block of references is two dense matrix
+products per block -- a complex one holding a direct correlation along y (the query side is
+expanded into its row shifts), then a real inverse DFT restricted to the shift window. Both
+run at BLAS speed and only the window is ever computed.
 """
 
 from __future__ import annotations
@@ -22,24 +22,50 @@ from scipy import fft as sp_fft
 from mf_lpr_ros.core.array_ops import NumpyArrays
 
 
+class PreparedQueries:
+    """A batch of A query images ready to correlate: their row spectra, zero-padded by the shift
+    window on both sides of y (K, A, H + 2S), and their windows (K, A, 2S+1, H) (a view:
+    window t of every row, t reversed so that di ascends). The operator that correlates every
+    query at once (SpectralBank.operator) is built the first time a search needs it; a search
+    that pairs each reference with a few queries builds one query's operator at a time."""
+
+    def __init__(self, rows, windows) -> None:
+        self.rows = rows
+        self.windows = windows
+        self.n_queries = rows.shape[1]
+        self.operator = None
+
+
+class AllowedScores:
+    """The scores of the (reference, query) pairs a search allowed: pair p is query queries[p]
+    against the reference at position positions[p] of the subset searched, its scores
+    scores[:, :, p] (2S+1 [dj], 2S+1 [di])."""
+
+    def __init__(self, queries: np.ndarray, positions: np.ndarray, scores) -> None:
+        self.queries, self.positions, self.scores = queries, positions, scores
+
+
 class SpectralBank(NumpyArrays):
     """Reference images prepared once for windowed correlation against many queries.
 
-    Storage is (K, 2H, capacity) float32: for each x-frequency k the real and imaginary parts
-    of every reference row, references along the last axis so a block is a column slice.
+    Storage is (capacity, K, H) complex64: for each reference and x-frequency k the spectra of
+    its rows, so that the candidates of a query are gathered as whole blocks. The products
+    read it as (K, H, references), which BLAS takes as a transposed operand without a copy.
     """
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64) -> None:
         if max_shift < 0:
             raise ValueError(f"max_shift must be >= 0, got {max_shift}")
         self.height, self.width, self.max_shift = height, width, max_shift
+        self.n_shifts = 2 * max_shift + 1
         self.fft_length = width + max_shift
         self.n_freqs = self.fft_length // 2 + 1
         self._bank = self._new_bank(max(capacity, 1))
         self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
         self._count = 0
         self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
-        self._operator = np.empty(0, dtype=np.float32)
+        self._operator = np.empty(0, dtype=np.complex64)
+        self._one_query_operator = np.empty(0, dtype=np.complex64)
 
     def __len__(self) -> int:
         return self._count
@@ -61,9 +87,8 @@ class SpectralBank(NumpyArrays):
                              f"got {images.shape}")
         start, stop = self._count, self._count + len(images)
         self._reserve(stop)
-        spectra = sp_fft.rfft(images, n=self.fft_length, axis=2)
-        stacked = np.concatenate([spectra.real, spectra.imag], axis=1).transpose(2, 1, 0)
-        self._bank[:, :, start:stop] = self._from_host(np.ascontiguousarray(stacked))
+        spectra = sp_fft.rfft(images, n=self.fft_length, axis=2).transpose(0, 2, 1)
+        self._bank[start:stop] = self._from_host(np.ascontiguousarray(spectra))
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
 
@@ -73,135 +98,205 @@ class SpectralBank(NumpyArrays):
         self.append(images)
 
     def _new_bank(self, capacity: int) -> np.ndarray:
-        return np.zeros((self.n_freqs, 2 * self.height, capacity), dtype=np.float32)
+        return np.zeros((capacity, self.n_freqs, self.height), dtype=np.complex64)
 
     def _reserve(self, needed: int) -> None:
-        capacity = self._bank.shape[2]
+        capacity = self._bank.shape[0]
         if needed <= capacity:
             return
         new_capacity = max(needed, 2 * capacity)
         bank = self._new_bank(new_capacity)
-        bank[:, :, : self._count] = self._bank[:, :, : self._count]
+        bank[: self._count] = self._bank[: self._count]
         norms = np.zeros(new_capacity, dtype=np.float32)
         norms[: self._count] = self._norms[: self._count]
         self._bank, self._norms = bank, norms
 
-    def prepare_queries(self, queries: np.ndarray) -> np.ndarray:
-        """The query-side operator (K, 2M, 2H) for a batch of A query images (A, H, W).
+    @staticmethod
+    def _columns(blocks: np.ndarray) -> np.ndarray:
+        """Reference blocks (n, K, H) as the products' right operand (K, H, n), a view."""
+        return blocks.transpose(1, 2, 0)
 
-        Row m = (a, di) of the real block holds the query's row spectrum shifted by di, so
-        that multiplying by a reference's [Re; Im] row spectra correlates along y. The operator
-        lives in a buffer this bank reuses: it is valid until the next call (a fresh 20 MB
+    def prepare_queries(self, queries: np.ndarray) -> PreparedQueries:
+        """A batch of query images (A, H, W) ready for the searches below."""
+        queries = np.asarray(queries, dtype=np.float32)
+        height, shift = self.height, self.max_shift
+        spectra = sp_fft.rfft(queries, n=self.fft_length, axis=2).transpose(2, 0, 1)
+        rows = np.zeros((self.n_freqs, len(queries), height + 2 * shift), dtype=np.complex64)
+        rows[:, :, shift: shift + height] = spectra
+        # windows[k, a, t, i] = rows[k, a, t + i]; di = shift - t, so reverse t.
+        return PreparedQueries(rows, sliding_window_view(rows, height, axis=2)[:, :, ::-1])
+
+    def operator(self, prepared: PreparedQueries) -> np.ndarray:
+        """The operator (K, A (2S+1), H) of every query in prepared, built once.
+
+        Row (a, di) holds the conjugate of query a's row spectrum shifted by di, so that
+        multiplying by a reference's row spectra correlates along y. It lives in a buffer this
+        bank reuses: valid until the next batch is prepared and searched (a fresh 10-30 MB
         array per query costs more in page faults than filling it).
         """
-        queries = np.asarray(queries, dtype=np.float32)
-        n_queries, height, shift = queries.shape[0], self.height, self.max_shift
-        spectra = sp_fft.rfft(queries, n=self.fft_length, axis=2).transpose(2, 0, 1)
-        shape = self.reserve_operator(n_queries)
-        operator = self._operator.reshape(shape)
-        padded = np.zeros((2, self.n_freqs, n_queries, height + 2 * shift), dtype=np.float32)
-        padded[0, :, :, shift: shift + height] = spectra.real
-        padded[1, :, :, shift: shift + height] = spectra.imag
-        # windows[p, k, a, t, i] = padded[p, k, a, t + i]; di = shift - t, so reverse t.
-        # Copying into views of the operator, never reshaping the window view (that copies).
-        real, imag = sliding_window_view(padded, height, axis=3)[:, :, :, ::-1]
-        operator[:, 0, :, :, :height] = real
-        operator[:, 0, :, :, height:] = imag
-        np.negative(imag, out=operator[:, 1, :, :, :height])
-        operator[:, 1, :, :, height:] = real
-        return operator.reshape(self.n_freqs, -1, 2 * height)
+        if prepared.operator is None:
+            shape = self.reserve_operator(prepared.n_queries)
+            prepared.operator = self._expand(prepared.windows, self._operator_buffer(shape))
+        return prepared.operator
+
+    def _query_operator(self, prepared: PreparedQueries, query: int) -> np.ndarray:
+        """The operator of one query of prepared (K, 2S+1, H), in a buffer reused for
+        every query: small enough to stay in cache between being built and being used."""
+        return self._expand(prepared.windows[:, query: query + 1], self._one_query_buffer())
+
+    def _operator_buffer(self, shape: tuple[int, ...]) -> np.ndarray:
+        return self._operator.reshape(shape)
+
+    def _one_query_buffer(self) -> np.ndarray:
+        shape = (self.n_freqs, 1, self.n_shifts, self.height)
+        if self._one_query_operator.size != np.prod(shape):
+            self._one_query_operator = np.empty(shape, dtype=np.complex64)
+        return self._one_query_operator.reshape(shape)
+
+    def _expand(self, windows: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """The operator of row windows (K, A, 2S+1, H), written into out (same shape)."""
+        return np.conjugate(windows, out=out).reshape(self.n_freqs, -1, self.height)
 
     def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
         """Allocate the operator buffer for batches of n_queries now (a long run's memory is
-        then fixed before its first query); returns the operator's 5-D shape."""
-        shape = (self.n_freqs, 2, n_queries, 2 * self.max_shift + 1, 2 * self.height)
+        then fixed before its first query); returns the operator's 4-D shape."""
+        shape = (self.n_freqs, n_queries, self.n_shifts, self.height)
         if self._operator.size != np.prod(shape):
-            self._operator = np.empty(shape, dtype=np.float32)
+            self._operator = np.empty(shape, dtype=np.complex64)
         return shape
 
-    def correlate_block(self, operator: np.ndarray, start: int, stop: int) -> np.ndarray:
+    def correlate_block(self, prepared: PreparedQueries, start: int, stop: int) -> np.ndarray:
         """Scores of the prepared queries against references [start, stop).
 
         Returns (2S+1 [dj], A, 2S+1 [di], stop - start) float32.
         """
-        return self._correlate(operator, self._bank[:, :, start:stop])
+        return self._correlate(self.operator(prepared), self._columns(self._bank[start:stop]))
 
-    def correlate_subset(self, operator: np.ndarray, references: np.ndarray) -> np.ndarray:
+    def correlate_subset(self, prepared: PreparedQueries, references: np.ndarray) -> np.ndarray:
         """As correlate_block, for any references (indices), in the order given."""
-        return self._correlate(operator, self._bank[:, :, self._index(references)])
+        return self._correlate(self.operator(prepared),
+                               self._columns(self._bank[self._index(references)]))
 
     def _correlate(self, operator: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        n_rows, n_refs = operator.shape[1] // 2, columns.shape[2]
+        n_rows, n_refs = operator.shape[1], columns.shape[2]
         # `@`, not np.matmul: the torch backend's tensors take this same path.
-        spectra = operator @ columns
-        scores = self._inverse @ spectra.reshape(2 * self.n_freqs, n_rows * n_refs)
-        n_shifts = 2 * self.max_shift + 1
-        return scores.reshape(n_shifts, n_rows // n_shifts, n_shifts, n_refs)
+        scores = self._windowed_inverse(operator @ columns)
+        return scores.reshape(self.n_shifts, n_rows // self.n_shifts, self.n_shifts, n_refs)
 
-    def best_per_reference(self, operator: np.ndarray, stop: int | None = None,
+    def _windowed_inverse(self, spectra: np.ndarray) -> np.ndarray:
+        """Correlation scores (2S+1 [dj], R x n) from y-correlated spectra (K, R, n)."""
+        width = int(np.prod(spectra.shape[1:]))
+        return self._inverse @ self._real_parts(spectra).reshape(2 * self.n_freqs, width)
+
+    @staticmethod
+    def _empty_spectra(shape: tuple[int, ...]) -> np.ndarray:
+        return np.empty(shape, dtype=np.complex64)
+
+    @staticmethod
+    def _real_parts(spectra: np.ndarray) -> np.ndarray:
+        """(K, 2 [Re, Im], ...) float32 of complex (K, ...)."""
+        return np.moveaxis(spectra.view(np.float32).reshape(*spectra.shape, 2), -1, 1)
+
+    def best_per_reference(self, prepared: PreparedQueries, stop: int | None = None,
                            chunk_size: int = 256) -> np.ndarray:
         """Best score over the whole (dj, a, di) volume of every reference in [0, stop)."""
         stop = self._count if stop is None else min(stop, self._count)
         best = self._empty_scores(stop)
         for start in range(0, stop, chunk_size):
             end = min(start + chunk_size, stop)
-            best[start:end] = self._amax(self.correlate_block(operator, start, end).reshape(
+            best[start:end] = self._amax(self.correlate_block(prepared, start, end).reshape(
                 -1, end - start), axis=0)
         return self._to_host(best)
 
-    def best_of_subset(self, operator: np.ndarray, references: np.ndarray,
+    def best_of_subset(self, prepared: PreparedQueries, references: np.ndarray,
                        chunk_size: int = 256, allowed: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, np.ndarray | None]:
+                       ) -> tuple[np.ndarray, "np.ndarray | AllowedScores | None"]:
         """best_per_reference for the given references only, in their order; with allowed
-        ((n, A) bool on the host), only the (reference, query) pairs it allows.
+        ((n, A) bool on the host), only over the (reference, query) pairs it allows (-inf for
+        a reference with none).
 
-        Also returns the whole score volume (as correlate_subset) when the references fit one
-        chunk, so that locating a few of them needs no second pass over the operator.
+        Also returns the scores computed (the whole volume as correlate_subset, or the allowed
+        pairs' AllowedScores) when the references fit one chunk, so that locating a few of
+        them (peaks) needs no second pass.
         """
         references = np.asarray(references, dtype=np.int64)
+        if allowed is not None:
+            return self._best_of_allowed(prepared, references, chunk_size, allowed)
         best = self._empty_scores(len(references))
         volume = None
         for start in range(0, len(references), chunk_size):
             chunk = references[start: start + chunk_size]
-            volume = self._correlate_some(operator, chunk, None if allowed is None
-                                          else allowed[start: start + len(chunk)])
+            volume = self.correlate_subset(prepared, chunk)
             best[start: start + len(chunk)] = self._amax(volume.reshape(-1, len(chunk)), axis=0)
         return self._to_host(best), (volume if len(references) <= chunk_size else None)
 
-    def locate(self, operator: np.ndarray, references: np.ndarray,
+    def _best_of_allowed(self, prepared: PreparedQueries, references: np.ndarray,
+                         chunk_size: int, allowed: np.ndarray
+                         ) -> tuple[np.ndarray, "AllowedScores | None"]:
+        best = np.full(len(references), -np.inf, dtype=np.float32)
+        pairs = None
+        for start in range(0, len(references), chunk_size):
+            chunk = slice(start, start + chunk_size)
+            pairs = self._allowed_scores(prepared, references[chunk], allowed[chunk])
+            pair_best = self._to_host(self._amax(pairs.scores.reshape(
+                self.n_shifts ** 2, len(pairs.positions)), axis=0))
+            np.maximum.at(best, start + pairs.positions, pair_best)
+        return best, (pairs if len(references) <= chunk_size else None)
+
+    def locate(self, prepared: PreparedQueries, references: np.ndarray,
                allowed: np.ndarray | None = None) -> np.ndarray:
-        """Best alignment of each reference: (n, 4) rows of query a, di, dj and the score."""
-        return self.peaks(self._correlate_some(operator, references, allowed))
-
-    def _correlate_some(self, operator: np.ndarray, references: np.ndarray,
-                        allowed: np.ndarray | None) -> np.ndarray:
-        """correlate_subset, or only the pairs allowed[k, a] permits (the others -inf), one
-        query at a time: a pair not allowed costs nothing."""
+        """Best alignment of each reference (among the pairs allowed permits, when given):
+        (n, 4) rows of query a, di, dj and the score."""
         if allowed is None:
-            return self.correlate_subset(operator, references)
-        n_shifts = 2 * self.max_shift + 1
-        n_queries = allowed.shape[1]
-        by_query = self._full((n_queries, n_shifts, n_shifts, len(references)), -np.inf)
-        per_query = operator.reshape(self.n_freqs, 2, n_queries, n_shifts, 2 * self.height)
-        # Gathered once: gathering columns from the whole bank for every query costs more than
-        # the products.
-        candidates = self._bank[:, :, self._index(references)]
-        for query in np.flatnonzero(allowed.any(axis=0)):
-            picked = np.flatnonzero(allowed[:, query])
-            rows = per_query[:, :, query].reshape(self.n_freqs, 2 * n_shifts, 2 * self.height)
-            spectra = rows @ candidates[:, :, self._index(picked)]
-            scores = self._inverse @ spectra.reshape(2 * self.n_freqs, n_shifts * len(picked))
-            by_query[query][:, :, self._index(picked)] = scores.reshape(n_shifts, n_shifts,
-                                                                        len(picked))
-        return by_query.swapaxes(0, 1)
+            return self.peaks(self.correlate_subset(prepared, references))
+        return self.peaks(self._allowed_scores(prepared, references, allowed))
 
-    def peaks(self, volume: np.ndarray, columns: np.ndarray | None = None) -> np.ndarray:
-        """As locate, from a correlate_subset volume (only the given columns)."""
-        if columns is not None:
-            volume = volume[..., self._index(columns)]
+    def _allowed_scores(self, prepared: PreparedQueries, references: np.ndarray,
+                        allowed: np.ndarray) -> AllowedScores:
+        """The scores of the pairs allowed[k, a] permits, one query at a time against only its
+        references: a pair not allowed costs nothing, and no operator of every query is
+        built."""
+        # Gathered once: whole blocks of the reference-major storage.
+        candidates = self._bank[self._index(references)]
+        queries, positions = np.nonzero(np.asarray(allowed).T)
+        spectra = self._empty_spectra((self.n_freqs, self.n_shifts, len(queries)))
+        bounds = np.searchsorted(queries, np.arange(allowed.shape[1] + 1))
+        for query in np.unique(queries):
+            first, last = int(bounds[query]), int(bounds[query + 1])
+            spectra[:, :, first:last] = (self._query_operator(prepared, int(query))
+                                         @ self._columns(candidates[self._index(
+                                             positions[first:last])]))
+        # One inverse for every pair: a product as wide as all of them runs at BLAS speed.
+        scores = self._windowed_inverse(spectra).reshape(self.n_shifts, self.n_shifts,
+                                                          len(queries))
+        return AllowedScores(queries, positions, scores)
+
+    def peaks(self, computed: "np.ndarray | AllowedScores",
+              columns: np.ndarray | None = None) -> np.ndarray:
+        """As locate, from what best_of_subset computed (only the given columns)."""
+        if isinstance(computed, AllowedScores):
+            return self._allowed_peaks(computed, columns)
+        volume = computed if columns is None else computed[..., self._index(columns)]
         flat, scores = self._argmax_rows(volume.reshape(-1, volume.shape[3]))
         dj, a, di = np.unravel_index(flat, tuple(volume.shape[:3]))
         return np.stack([a, di - self.max_shift, dj - self.max_shift, scores], axis=1)
+
+    def _allowed_peaks(self, pairs: AllowedScores, columns: np.ndarray | None) -> np.ndarray:
+        if columns is None:
+            columns = np.arange(pairs.positions.max(initial=-1) + 1)
+        located = np.zeros((len(columns), 4))
+        located[:, 3] = -np.inf
+        for row, column in enumerate(np.asarray(columns)):
+            own = np.flatnonzero(pairs.positions == column)
+            if not len(own):
+                continue
+            flat, values = self._argmax_rows(
+                pairs.scores[:, :, self._index(own)].reshape(self.n_shifts ** 2, len(own)))
+            best = int(np.argmax(values))
+            dj, di = np.unravel_index(int(flat[best]), (self.n_shifts, self.n_shifts))
+            located[row] = (pairs.queries[own[best]], di - self.max_shift,
+                            dj - self.max_shift, values[best])
+        return located
 
 
 def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarray:

@@ -22,6 +22,7 @@ from mf_lpr_ros.core.descriptor import (
     weighted,
 )
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
+from mf_lpr_ros.core.matched_filter import PreparedQueries
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
 from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
@@ -206,7 +207,7 @@ class MatchedFilterIndex:
         enter the pose: the alignment maps descriptor cells, and a sensor off the cell corner
         turns with the query.
         Returns None when there is no reference to search. One query at a time per index: the
-        query operator's buffer is shared.
+        query operators' buffers are shared.
         """
         with self._query_lock:
             self._query_offset = np.full(2, float(sensor_offset_m))
@@ -221,8 +222,8 @@ class MatchedFilterIndex:
         w = self.params.unoccupied_weight
         low_queries = pooled_weights(rotate_occupancy(occupancy, self.global_angles), w,
                                      self.params.pool, self._query_covered(self.global_angles))
-        operator = self.bank.prepare_queries(low_queries)
-        prepared = time.perf_counter()
+        prepared = self.bank.prepare_queries(low_queries)
+        queries_ready = time.perf_counter()
         volume = None
         prefiltered = self.prefilter is not None and n_refs > self.search.prefilter_top_k
         if prefiltered:
@@ -242,10 +243,10 @@ class MatchedFilterIndex:
         allowed = self._allowed_headings(low_queries[0], searched) if prefiltered else None
         prefilter_done = time.perf_counter()
         if prefiltered or self.spectra_on_demand:
-            scores, volume = self.bank.best_of_subset(operator, columns, self.search.chunk_size,
+            scores, volume = self.bank.best_of_subset(prepared, columns, self.search.chunk_size,
                                                       allowed)
         else:
-            scores = self.bank.best_per_reference(operator, n_refs, self.search.chunk_size)
+            scores = self.bank.best_per_reference(prepared, n_refs, self.search.chunk_size)
         if self.search.score_normalisation == "cosine":
             scores = scores / np.maximum(self.bank.norms[columns], 1e-6)
         n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
@@ -256,7 +257,7 @@ class MatchedFilterIndex:
 
         finalists = order[: self.search.top_n]
         located = (self.bank.peaks(volume, finalists) if volume is not None
-                   else self.bank.locate(operator, columns[finalists],
+                   else self.bank.locate(prepared, columns[finalists],
                                          None if allowed is None else allowed[finalists]))
         peaks = [self._local(occupancy, int(reference), self.global_angles[int(angle_index)])
                  for reference, (angle_index, *_) in zip(searched[finalists], located)]
@@ -265,7 +266,7 @@ class MatchedFilterIndex:
         result = self._result(peaks[0], ranked)
         distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
         nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, columns,
-                                     operator, volume, n_refs)
+                                     prepared, volume, n_refs)
         if nearer is not None:
             peak, result = nearer
             peaks = [peak] + [other for other in peaks if other is not peak]
@@ -277,7 +278,7 @@ class MatchedFilterIndex:
             result.hypotheses.append(Hypothesis(other.reference_index, other.pose, other.score,
                                                 other.confidence))
         result.timings_ms = {"global": (global_done - started) * 1e3,
-                             "prefilter": (prefilter_done - prepared) * 1e3,
+                             "prefilter": (prefilter_done - queries_ready) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
         return result
 
@@ -306,7 +307,7 @@ class MatchedFilterIndex:
 
     def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
                        peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
-                       columns: np.ndarray, operator, volume, n_refs: int
+                       columns: np.ndarray, prepared: PreparedQueries, volume, n_refs: int
                        ) -> "tuple[_LocalPeak, MatchResult] | None":
         """The reference nearest the matched pose, aligned, and its match, when it confirms the
         match.
@@ -326,7 +327,7 @@ class MatchedFilterIndex:
         aligned = [peak for peak in peaks if peak.reference == nearest]
         candidate = aligned[0] if aligned else self._local(
             occupancy, nearest,
-            self._coarse_angle(nearest, match, searched, columns, operator, volume))
+            self._coarse_angle(nearest, match, searched, columns, prepared, volume))
         if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
             return None
         confirmed = self._result(candidate, ranked)
@@ -335,14 +336,14 @@ class MatchedFilterIndex:
         return candidate, confirmed
 
     def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray,
-                      columns: np.ndarray, operator, volume) -> float:
+                      columns: np.ndarray, prepared: PreparedQueries, volume) -> float:
         """The global-stage rotation for reference: its own best when the global stage scored
         it, else the one the match's pose implies (snapped to the global angles, whose
         rotation tables are prepared)."""
         column = np.flatnonzero(searched == reference)
         if len(column):
             located = (self.bank.peaks(volume, column) if volume is not None
-                       else self.bank.locate(operator, columns[column]))
+                       else self.bank.locate(prepared, columns[column]))
             return float(self.global_angles[int(located[0][0])])
         relative = math.degrees(match.pose[2] - planar(self.map.poses[reference])[2])
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)

@@ -27,8 +27,8 @@ def test_bank_equals_direct_correlation(rng, size, max_shift):
     bank = SpectralBank(size, size, max_shift, capacity=2)
     bank.append(references[:3])
     bank.append(references[3:])  # growing past capacity keeps earlier references
-    operator = bank.prepare_queries(queries)
-    volume = bank.correlate_block(operator, 0, 7)
+    prepared = bank.prepare_queries(queries)
+    volume = bank.correlate_block(prepared, 0, 7)
     for r in range(7):
         for a in range(3):
             direct = correlate_direct(queries[a], references[r], max_shift)
@@ -42,7 +42,7 @@ MAX_SHIFT = 5
 
 
 def random_bank(rng, size=14):
-    """A bank of 9 random references and the operator of 4 random queries."""
+    """A bank of 9 random references and 4 random queries, prepared."""
     references = (rng.random((9, size, size)) < 0.3).astype(np.float32) - 0.15
     queries = (rng.random((4, size, size)) < 0.3).astype(np.float32) - 0.15
     bank = SpectralBank(size, size, MAX_SHIFT)
@@ -52,27 +52,27 @@ def random_bank(rng, size=14):
 
 def test_global_best_and_location_match_brute_force(rng):
     max_shift = MAX_SHIFT
-    bank, references, queries, operator = random_bank(rng)
-    best = bank.best_per_reference(operator, chunk_size=4)
+    bank, references, queries, prepared = random_bank(rng)
+    best = bank.best_per_reference(prepared, chunk_size=4)
     brute = np.array([[correlate_direct(q, r, max_shift) for q in queries] for r in references])
     np.testing.assert_allclose(best, brute.reshape(9, -1).max(axis=1), atol=1e-3)
     top = int(np.argmax(best))
     assert top == int(np.argmax(brute.reshape(9, -1).max(axis=1)))
-    located = bank.locate(operator, np.array([top, 2]))
+    located = bank.locate(prepared, np.array([top, 2]))
     for row, reference in zip(located, (top, 2)):
         a, di, dj, score = row
         expected = np.unravel_index(np.argmax(brute[reference]), brute[reference].shape)
         assert (a, di + max_shift, dj + max_shift) == tuple(int(v) for v in expected)
         assert score == pytest.approx(brute[reference].max(), abs=1e-3)
     # Restricting to the first references searches only those.
-    assert np.allclose(bank.best_per_reference(operator, stop=3), best[:3])
+    assert np.allclose(bank.best_per_reference(prepared, stop=3), best[:3])
     # Any subset, in any order, scores as the full search does.
     subset = np.array([7, 0, 4, 8])
     for chunk_size in (3, 4):
-        subset_best, volume = bank.best_of_subset(operator, subset, chunk_size=chunk_size)
+        subset_best, volume = bank.best_of_subset(prepared, subset, chunk_size=chunk_size)
         np.testing.assert_allclose(subset_best, best[subset], atol=1e-5)
     # One chunk: the volume comes back and locates as a second pass would.
-    np.testing.assert_allclose(bank.peaks(volume, [2, 0]), bank.locate(operator, subset[[2, 0]]),
+    np.testing.assert_allclose(bank.peaks(volume, [2, 0]), bank.locate(prepared, subset[[2, 0]]),
                                atol=1e-5)
 
 
@@ -86,24 +86,32 @@ def test_shifted_copy_peaks_at_its_shift(rng):
 
 
 def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):
-    bank, _, queries, operator = random_bank(rng)
+    bank, _, queries, prepared = random_bank(rng)
     subset = np.array([7, 0, 4, 8, 2])
     allowed = rng.random((len(subset), len(queries))) < 0.5
     allowed[3] = False          # a reference with no pair allowed scores -inf
     allowed[:, 1] = False       # a query no reference may pair with is never correlated
     allowed[0, 0] = allowed[2, 2] = True
-    full = bank.correlate_subset(operator, subset)
-    best, volume = bank.best_of_subset(operator, subset, allowed=allowed)
-    assert volume.shape == full.shape
+    full = bank.correlate_subset(prepared, subset)
+    best, pairs = bank.best_of_subset(prepared, subset, allowed=allowed)
+    # Exactly the allowed pairs were computed, each scoring as in the full search.
+    assert sorted(zip(pairs.positions, pairs.queries)) == sorted(zip(*np.nonzero(allowed)))
+    for p, (k, a) in enumerate(zip(pairs.positions, pairs.queries)):
+        np.testing.assert_allclose(pairs.scores[:, :, p], full[:, a, :, k], atol=1e-4)
     for k in range(len(subset)):
-        for a in range(len(queries)):
-            if allowed[k, a]:
-                np.testing.assert_allclose(volume[:, a, :, k], full[:, a, :, k], atol=1e-4)
-            else:
-                assert np.all(volume[:, a, :, k] == -np.inf)
         expected = full[:, allowed[k], :, k].max() if allowed[k].any() else -np.inf
         assert best[k] == pytest.approx(expected, abs=1e-4)
-    # Located only among the allowed pairs, whether from the volume or a second pass.
-    located = bank.locate(operator, subset[[0, 2]], allowed[[0, 2]])
-    np.testing.assert_allclose(located, bank.peaks(volume, [0, 2]), atol=1e-4)
-    assert all(allowed[[0, 2][i], int(row[0])] for i, row in enumerate(located))
+    # Located only among the allowed pairs, whether from the pairs or a second pass, at the
+    # full search's best allowed alignment.
+    located = bank.locate(prepared, subset[[0, 2]], allowed[[0, 2]])
+    np.testing.assert_allclose(located, bank.peaks(pairs, [0, 2]), atol=1e-4)
+    for row, k in zip(located, (0, 2)):
+        masked = np.where(allowed[k][None, :, None], full[:, :, :, k], -np.inf)
+        dj, a, di = np.unravel_index(np.argmax(masked), masked.shape)
+        assert tuple(int(v) for v in row[:3]) == (a, di - MAX_SHIFT, dj - MAX_SHIFT)
+        assert row[3] == pytest.approx(masked.max(), abs=1e-4)
+    # Chunked, the same best scores; a chunk with no pair allowed computes nothing.
+    chunked, _ = bank.best_of_subset(prepared, subset, chunk_size=2, allowed=allowed)
+    np.testing.assert_allclose(chunked, best)
+    nothing, pairs = bank.best_of_subset(prepared, subset[3:4], allowed=allowed[3:4])
+    assert nothing[0] == -np.inf and len(pairs.positions) == 0

@@ -29,23 +29,26 @@ def test_bank_operations_match_numpy():
     for bank in (cpu, gpu):
         bank.append(references[:5])
         bank.append(references[5:])
-    cpu_op, gpu_op = cpu.prepare_queries(queries), gpu.prepare_queries(queries)
-    np.testing.assert_allclose(gpu.best_per_reference(gpu_op, chunk_size=4),
-                               cpu.best_per_reference(cpu_op, chunk_size=4), atol=1e-4)
+    cpu_prepared, gpu_prepared = cpu.prepare_queries(queries), gpu.prepare_queries(queries)
+    np.testing.assert_allclose(gpu.best_per_reference(gpu_prepared, chunk_size=4),
+                               cpu.best_per_reference(cpu_prepared, chunk_size=4), atol=1e-4)
     subset = np.array([9, 2, 5])
-    (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (cpu.best_of_subset(cpu_op, subset),
-                                                      gpu.best_of_subset(gpu_op, subset))
+    (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (cpu.best_of_subset(cpu_prepared, subset),
+                                                      gpu.best_of_subset(gpu_prepared, subset))
     np.testing.assert_allclose(gpu_best, cpu_best, atol=1e-4)
     np.testing.assert_allclose(gpu.peaks(gpu_volume, [1, 2]), cpu.peaks(cpu_volume, [1, 2]),
                                atol=1e-4)
-    np.testing.assert_allclose(gpu.locate(gpu_op, subset), cpu.locate(cpu_op, subset), atol=1e-4)
+    np.testing.assert_allclose(gpu.locate(gpu_prepared, subset),
+                               cpu.locate(cpu_prepared, subset), atol=1e-4)
     allowed = np.array([[True, False, True], [False, False, True], [True, True, False]])
     (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (
-        cpu.best_of_subset(cpu_op, subset, allowed=allowed),
-        gpu.best_of_subset(gpu_op, subset, allowed=allowed))
+        cpu.best_of_subset(cpu_prepared, subset, allowed=allowed),
+        gpu.best_of_subset(gpu_prepared, subset, allowed=allowed))
     np.testing.assert_allclose(gpu_best, cpu_best, atol=1e-4)
-    np.testing.assert_allclose(gpu.locate(gpu_op, subset, allowed),
-                               cpu.locate(cpu_op, subset, allowed), atol=1e-4)
+    np.testing.assert_allclose(gpu.peaks(gpu_volume, [0, 2]), cpu.peaks(cpu_volume, [0, 2]),
+                               atol=1e-4)
+    np.testing.assert_allclose(gpu.locate(gpu_prepared, subset, allowed),
+                               cpu.locate(cpu_prepared, subset, allowed), atol=1e-4)
     np.testing.assert_allclose(gpu.norms, cpu.norms)
     np.testing.assert_allclose(torch_backend.correlate_fft2(queries, references[3], 4),
                                correlate_fft2(queries, references[3], 4), atol=1e-4)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from scipy import fft as sp_fft
 
-from mf_lpr_ros.core.matched_filter import SpectralBank
+from mf_lpr_ros.core.matched_filter import PreparedQueries, SpectralBank
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 
 
@@ -43,9 +43,6 @@ class TorchArrays:
     def _empty_scores(self, count: int) -> torch.Tensor:
         return torch.empty(count, dtype=torch.float32, device=self.device)
 
-    def _full(self, shape: tuple[int, ...], value: float) -> torch.Tensor:
-        return torch.full(shape, value, dtype=torch.float32, device=self.device)
-
     @staticmethod
     def _amax(values: torch.Tensor, axis: int) -> torch.Tensor:
         return values.amax(dim=axis)
@@ -61,8 +58,8 @@ class TorchArrays:
 
 
 class TorchSpectralBank(TorchArrays, SpectralBank):
-    """SpectralBank with the bank and the query operator on a torch device. The operator is
-    built on the device for each query batch (no reused host buffer, unlike numpy's)."""
+    """SpectralBank with the bank and the query operators on a torch device. Operators are
+    built on the device for each query batch (no reused host buffers, unlike numpy's)."""
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
                  device: torch.device | None = None) -> None:
@@ -71,26 +68,41 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
         self._inverse = self._from_host(self._inverse)
 
     def _new_bank(self, capacity: int) -> torch.Tensor:
-        return torch.zeros((self.n_freqs, 2 * self.height, capacity), dtype=torch.float32,
+        return torch.zeros((capacity, self.n_freqs, self.height), dtype=torch.complex64,
                            device=self.device)
 
-    def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
-        return (self.n_freqs, 2, n_queries, 2 * self.max_shift + 1, 2 * self.height)
+    @staticmethod
+    def _columns(blocks: torch.Tensor) -> torch.Tensor:
+        return blocks.permute(1, 2, 0)
 
-    def prepare_queries(self, queries: np.ndarray) -> torch.Tensor:
+    def _empty_spectra(self, shape: tuple[int, ...]) -> torch.Tensor:
+        return torch.empty(shape, dtype=torch.complex64, device=self.device)
+
+    @staticmethod
+    def _real_parts(spectra: torch.Tensor) -> torch.Tensor:
+        return torch.view_as_real(spectra).movedim(-1, 1)
+
+    def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
+        return (self.n_freqs, n_queries, self.n_shifts, self.height)
+
+    def _operator_buffer(self, shape: tuple[int, ...]) -> None:
+        return None
+
+    def _one_query_buffer(self) -> None:
+        return None
+
+    def prepare_queries(self, queries: np.ndarray) -> PreparedQueries:
         height, shift = self.height, self.max_shift
         images = self._from_host(np.asarray(queries, dtype=np.float32))
         spectra = torch.fft.rfft(images, n=self.fft_length, dim=2).permute(2, 0, 1)
-        padded = torch.zeros((2, self.n_freqs, len(images), height + 2 * shift),
-                             dtype=torch.float32, device=self.device)
-        padded[0, :, :, shift: shift + height] = spectra.real
-        padded[1, :, :, shift: shift + height] = spectra.imag
-        # (2, K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
-        real, imag = padded.unfold(3, height, 1).flip(3)
-        top = torch.cat([real, imag], dim=3)
-        bottom = torch.cat([-imag, real], dim=3)
-        operator = torch.stack([top, bottom], dim=1)
-        return operator.reshape(self.n_freqs, -1, 2 * height)
+        rows = torch.zeros((self.n_freqs, len(images), height + 2 * shift),
+                           dtype=torch.complex64, device=self.device)
+        rows[:, :, shift: shift + height] = spectra
+        # (K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
+        return PreparedQueries(rows, rows.unfold(2, height, 1).flip(2))
+
+    def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
+        return torch.conj_physical(windows).reshape(self.n_freqs, -1, self.height)
 
 
 class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
