@@ -41,5 +41,11 @@ class NumpyArrays:
         return rows, values[rows, np.arange(values.shape[1])]
 
     @staticmethod
+    def _real_parts(values: np.ndarray) -> np.ndarray:
+        """(N, 2 [Re, Im], ...) float32 view of complex64 (N, ...) whose last axis is
+        contiguous."""
+        return np.moveaxis(values.view(np.float32).reshape(*values.shape, 2), -1, 1)
+
+    @staticmethod
     def _nbytes(array) -> int:
         return array.nbytes

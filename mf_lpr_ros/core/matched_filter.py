@@ -192,11 +192,6 @@ class SpectralBank(NumpyArrays):
     def _empty_spectra(shape: tuple[int, ...]) -> np.ndarray:
         return np.empty(shape, dtype=np.complex64)
 
-    @staticmethod
-    def _real_parts(spectra: np.ndarray) -> np.ndarray:
-        """(K, 2 [Re, Im], ...) float32 of complex (K, ...)."""
-        return np.moveaxis(spectra.view(np.float32).reshape(*spectra.shape, 2), -1, 1)
-
     def best_per_reference(self, prepared: PreparedQueries, stop: int | None = None,
                            chunk_size: int = 256) -> np.ndarray:
         """Best score over the whole (dj, a, di) volume of every reference in [0, stop)."""

@@ -53,6 +53,10 @@ class TorchArrays:
         return rows.cpu().numpy(), values.gather(0, rows[None])[0].cpu().numpy()
 
     @staticmethod
+    def _real_parts(values: torch.Tensor) -> torch.Tensor:
+        return torch.view_as_real(values).movedim(-1, 1)
+
+    @staticmethod
     def _nbytes(tensor: torch.Tensor) -> int:
         return tensor.numel() * tensor.element_size()
 
@@ -77,10 +81,6 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
 
     def _empty_spectra(self, shape: tuple[int, ...]) -> torch.Tensor:
         return torch.empty(shape, dtype=torch.complex64, device=self.device)
-
-    @staticmethod
-    def _real_parts(spectra: torch.Tensor) -> torch.Tensor:
-        return torch.view_as_real(spectra).movedim(-1, 1)
 
     def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
         return (self.n_freqs, n_queries, self.n_shifts, self.height)
@@ -112,8 +112,7 @@ class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
                  device: torch.device | None = None) -> None:
         self.device = device or default_device()
         super().__init__(image_size, capacity=capacity)
-        self._inverse_real = self._from_host(self._inverse_real)
-        self._inverse_imag = self._from_host(self._inverse_imag)
+        self._inverse = self._from_host(self._inverse)
 
     def _new_bank(self, capacity: int) -> torch.Tensor:
         return torch.zeros((self.n_harmonics, capacity, self.n_radii), dtype=torch.complex64,
