@@ -183,12 +183,13 @@ class SearchParams:
         (mf_lpr_ros/core/verification.py). When consistency_min_support > 0 and the scans'
         odometry is known, a match is accepted only when at least this many earlier
         candidate matches (those passing the other tests) from the last consistency_window_m of
-        travel, each from a query at least consistency_min_separation_m from this one, agree
-        with it: the pose one implies, carried along the odometry, lies within
-        consistency_tolerance_m and consistency_tolerance_deg of the other's. A false match is
-        a one-off; a true revisit repeats along the path. Agreement is symmetric: a candidate
-        that lacked support when it came is published, late, once enough later ones agree
-        with it (the first matches of a revisit). 0 = off.
+        travel, each from a query at least consistency_min_separation_m from this one (and at
+        least descriptor.submap_m: closer, two submaps share scans, and one wrong match repeats
+        in the other), agree with it: the pose one implies, carried along the odometry, lies
+        within consistency_tolerance_m and consistency_tolerance_deg of the other's. A false
+        match is a one-off; a true revisit repeats along the path. Agreement is symmetric: a
+        candidate that lacked support when it came is published, late, once enough later ones
+        agree with it (the first matches of a revisit). 0 = off.
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too

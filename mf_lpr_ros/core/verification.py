@@ -10,8 +10,9 @@ A match is published when, in this order (cheap tests first, each only on what p
    against the reference's stored cloud;
 4. odometry consistency, where the scans' odometry is known and
    search.consistency_min_support > 0: other candidates within consistency_window_m of travel
-   must imply the same map-to-odometry alignment. A false match is a one-off; a true revisit
-   repeats along the path, each match agreeing with the odometry between them.
+   (and far enough that their submaps share no scan) must imply the same map-to-odometry
+   alignment. A false match is a one-off; a true revisit repeats along the path, each match
+   agreeing with the odometry between them.
 
 Agreement is symmetric: a candidate that lacked support when it came is confirmed as soon as
 enough later candidates agree with it (Verdict.confirms names it to the caller, who publishes
@@ -70,10 +71,17 @@ class _Candidate:
 class OdometryConsistency:
     """Counts the candidates whose implied poses, carried along the odometry between them,
     agree (SearchParams.consistency_*): each new candidate with the earlier ones in the window,
-    and each earlier one gains the new one's agreement."""
+    and each earlier one gains the new one's agreement.
 
-    def __init__(self, search: SearchParams) -> None:
+    Only candidates at least min_separation_m apart count for each other: closer than the
+    descriptor's submap window, two queries are described from the same scans and one wrong
+    match simply repeats in the other.
+    """
+
+    def __init__(self, search: SearchParams, min_separation_m: float | None = None) -> None:
         self.search = search
+        self.min_separation_m = (search.consistency_min_separation_m if min_separation_m is None
+                                 else min_separation_m)
         self.travelled_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self._candidates: deque[_Candidate] = deque()
@@ -100,7 +108,7 @@ class OdometryConsistency:
             earlier_odometry = np.stack([c.odometry for c in self._candidates])
             earlier_estimate = np.stack([c.estimate for c in self._candidates])
             separated = np.hypot(*(earlier_odometry[:, :2] - odometry[:2]).T) >= \
-                self.search.consistency_min_separation_m
+                self.min_separation_m
             predicted = compose_planar(earlier_estimate,
                                        relative_planar(earlier_odometry, odometry))
             position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
@@ -125,14 +133,18 @@ class MatchVerifier:
 
     odometry_known: the caller passes each query's odometry pose (planar x, y, yaw in any fixed
     frame); without it the consistency test cannot run and is skipped (`consistency_active`).
+    submap_m: the descriptor's submap window (DescriptorParams.submap_m): matches agree only
+    when at least this far apart (and consistency_min_separation_m), so that no two of them
+    were described from the same scans.
     """
 
     def __init__(self, search: SearchParams, *, min_score: float = 0.0,
-                 odometry_known: bool = True) -> None:
+                 odometry_known: bool = True, submap_m: float = 0.0) -> None:
         self.search = search
         self.min_score = min_score
         self.consistency_active = search.consistency_min_support > 0 and odometry_known
-        self.consistency = OdometryConsistency(search)
+        self.consistency = OdometryConsistency(
+            search, max(search.consistency_min_separation_m, submap_m))
 
     def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,
                fitness_of: Callable[[MatchResult], float] | None = None,

@@ -70,7 +70,8 @@ class MatchedFilterMethod:
         reference_map = ReferenceMap(self.config.descriptor)
         add_references(reference_map, descriptors)
         self._index = MatchedFilterIndex(reference_map, self.config.search)
-        self._verifier = MatchVerifier(self.config.search)
+        self._verifier = MatchVerifier(self.config.search,
+                                       submap_m=self.config.descriptor.submap_m)
         self._queries = 0
 
     def query(self, descriptor: DescribedScan, n_active: int, odometry: np.ndarray

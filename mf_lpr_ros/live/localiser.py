@@ -81,7 +81,8 @@ class Localiser:
         self.last_reference_error = ""
         odometry_known = mode == "loop_closure" if odometry_known is None else odometry_known
         self.verifier = MatchVerifier(config.search, min_score=min_score,
-                                      odometry_known=odometry_known)
+                                      odometry_known=odometry_known,
+                                      submap_m=config.descriptor.submap_m)
         # Candidates that may still be confirmed by later ones, by stamp (bounded: far more
         # than odometry consistency's window holds).
         self._unconfirmed: OrderedDict[float, LiveMatch] = OrderedDict()

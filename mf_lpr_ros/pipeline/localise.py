@@ -55,7 +55,8 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
                          "(build it with --keep-clouds)")
     index = MatchedFilterIndex(reference_map, search)
     posed = sequence.fully_posed
-    verifier = MatchVerifier(search, odometry_known=posed)
+    verifier = MatchVerifier(search, odometry_known=posed,
+                             submap_m=reference_map.params.submap_m)
     outcomes = []
     selected = list(range(len(sequence))) if indices is None else list(indices)
     sequence = with_submaps(sequence, SubmapWindow.for_descriptor(reference_map.params))

@@ -120,6 +120,27 @@ def test_a_stationary_robot_repeating_a_false_match_gets_no_support():
     assert {v.support for v in verdicts} == {0}
 
 
+def test_matches_of_overlapping_submaps_do_not_support_each_other():
+    # A wrong place matched by four scans 0.6 m apart (1.8 m of travel), as a sparse sensor's
+    # 3 m submaps of one street do: without the window they confirm each other.
+    odometry = _drive(4, step_m=0.6)
+    wrong = compose_planar(np.array([60.0, -40.0, 3.1]), odometry)
+    search = SearchParams(consistency_min_support=2, consistency_min_separation_m=1.0)
+    for submap_m, published in ((0.0, True), (3.0, False)):
+        verifier = MatchVerifier(search, submap_m=submap_m)
+        verdicts = [verifier.verify(_match(pose), odo, key=k)
+                    for k, (odo, pose) in enumerate(zip(odometry, wrong))]
+        confirmed = any(v.accepted or v.confirms for v in verdicts)
+        assert confirmed is published, submap_m
+    # A revisit longer than the window still gathers support from its farther matches.
+    odometry = _drive(12, step_m=1.5)
+    truth = compose_planar(np.array([100.0, -20.0, 0.7]), odometry)
+    verifier = MatchVerifier(search, submap_m=3.0)
+    verdicts = [verifier.verify(_match(pose), odo) for odo, pose in zip(odometry, truth)]
+    assert all(v.accepted for v in verdicts[4:])
+    assert verdicts[-1].support == 9           # every earlier match 3 m or more back
+
+
 def test_support_expires_after_the_travel_window():
     verifier = MatchVerifier(SearchParams(consistency_min_support=1, consistency_window_m=10.0))
     odometry = _drive(20, step_m=2.0)
