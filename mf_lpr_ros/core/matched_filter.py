@@ -23,16 +23,15 @@ from mf_lpr_ros.core.array_ops import NumpyArrays
 
 
 class PreparedQueries:
-    """A batch of A query images ready to correlate: their row spectra, zero-padded by the shift
-    window on both sides of y (K, A, H + 2S), and their windows (K, A, 2S+1, H) (a view:
-    window t of every row, t reversed so that di ascends). The operator that correlates every
+    """A batch of A query images ready to correlate: the windows (K, A, 2S+1, H) of their row
+    spectra zero-padded by the shift window on both sides of y (a view: window t of every row,
+    t reversed so that di ascends). The operator that correlates every
     query at once (SpectralBank.operator) is built the first time a search needs it; a search
     that pairs each reference with a few queries builds one query's operator at a time."""
 
-    def __init__(self, rows, windows) -> None:
-        self.rows = rows
+    def __init__(self, windows) -> None:
         self.windows = windows
-        self.n_queries = rows.shape[1]
+        self.n_queries = windows.shape[1]
         self.operator = None
 
 
@@ -124,7 +123,7 @@ class SpectralBank(NumpyArrays):
         rows = np.zeros((self.n_freqs, len(queries), height + 2 * shift), dtype=np.complex64)
         rows[:, :, shift: shift + height] = spectra
         # windows[k, a, t, i] = rows[k, a, t + i]; di = shift - t, so reverse t.
-        return PreparedQueries(rows, sliding_window_view(rows, height, axis=2)[:, :, ::-1])
+        return PreparedQueries(sliding_window_view(rows, height, axis=2)[:, :, ::-1])
 
     def operator(self, prepared: PreparedQueries) -> np.ndarray:
         """The operator (K, A (2S+1), H) of every query in prepared, built once.

@@ -57,6 +57,8 @@ class PolarSpectrumIndex(NumpyArrays):
             inverse.reshape(2 * self.n_harmonics, n_angles).T, dtype=np.float32)
         self._bank = self._new_bank(max(capacity, 1))
         self._count = 0
+        self._last_image: np.ndarray | None = None
+        self._last_query = None
 
     def __len__(self) -> int:
         return self._count
@@ -113,13 +115,21 @@ class PolarSpectrumIndex(NumpyArrays):
         """Best circular correlation over angle shifts of one query image against references
         [0, stop): (stop,) float32 in [-1, 1]."""
         stop = self._count if stop is None else min(stop, self._count)
-        query = self._from_host(self.features(image[None])[0]).conj()[:, :, None]
+        query = self._query(image)
         if stop <= _SCORED_TOGETHER:
             return self._to_host(self._best_over_angles(self._bank[:, :stop], query))
         return np.concatenate([
             self._to_host(self._best_over_angles(
                 self._bank[:, start: min(start + _SCORED_TOGETHER, stop)], query))
             for start in range(0, stop, _SCORED_TOGETHER)])
+
+    def _query(self, image: np.ndarray):
+        """The query image's conjugate features (H, R, 1), computed once for the last image: a
+        search ranks its candidates, then asks for their angles."""
+        if self._last_image is None or not np.array_equal(image, self._last_image):
+            self._last_query = self._from_host(self.features(image[None])[0]).conj()[:, :, None]
+            self._last_image = np.array(image, copy=True)
+        return self._last_query
 
     def _best_over_angles(self, features, query):
         return self._amax(self._over_angles(features, query), axis=0)
@@ -133,7 +143,7 @@ class PolarSpectrumIndex(NumpyArrays):
     def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
         """Degrees in [0, 180) by which the query image is best turned onto each reference (its
         spectrum's best circular shift): the yaw between them modulo half a turn."""
-        query = self._from_host(self.features(image[None])[0]).conj()[:, :, None]
+        query = self._query(image)
         correlation = self._over_angles(self._bank[:, self._index(references)], query)
         best, _ = self._argmax_rows(correlation)
         return np.asarray(best, dtype=np.float64) * (180.0 / self.n_angles)

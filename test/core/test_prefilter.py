@@ -61,6 +61,22 @@ def test_the_prefilter_angle_is_the_turn_back_modulo_half_a_turn(turn_deg):
     assert abs((angle[0] + turn_deg + 90.0) % 180.0 - 90.0) <= 180.0 / index.n_angles
 
 
+def test_a_query_changed_in_place_is_scored_afresh():
+    rng = np.random.default_rng(3)
+    images = rng.random((6, 60, 60)).astype(np.float32)
+    index, fresh = PolarSpectrumIndex(60), PolarSpectrumIndex(60)
+    index.append(images[:5])
+    fresh.append(images[:5])
+    query = images[5].copy()
+    first = index.scores(query)
+    query[:30] = images[0][:30]          # the same array, other content
+    changed = index.scores(query)
+    np.testing.assert_allclose(changed, fresh.scores(query), atol=1e-6)
+    assert not np.allclose(changed, first)
+    np.testing.assert_allclose(index.angles(query, np.arange(5)),
+                               fresh.angles(query.copy(), np.arange(5)))
+
+
 def test_index_grows_beyond_its_capacity():
     rng = np.random.default_rng(4)
     places = np.stack([low(blobs(rng)) for _ in range(9)])

@@ -99,7 +99,7 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
                            dtype=torch.complex64, device=self.device)
         rows[:, :, shift: shift + height] = spectra
         # (K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
-        return PreparedQueries(rows, rows.unfold(2, height, 1).flip(2))
+        return PreparedQueries(rows.unfold(2, height, 1).flip(2))
 
     def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
         return torch.conj_physical(windows).reshape(self.n_freqs, -1, self.height)
