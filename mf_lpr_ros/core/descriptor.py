@@ -289,8 +289,10 @@ def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> None:
         _rotation_sources(size, _angle_key(angles))
 
 
-def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:
-    """Occupancy rotated counter-clockwise about the sensor by each angle: (A, D, D) bool.
+def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
+                     only: np.ndarray | None = None) -> np.ndarray:
+    """Occupancy rotated counter-clockwise about the sensor by each angle: (A, D, D) bool; with
+    only (indices into angles_deg), by those angles alone (the set's tables are reused).
 
     Nearest-neighbour; cells whose source falls outside the window become unoccupied.
     """
@@ -298,8 +300,8 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray) -> np.ndarra
     # One unoccupied cell past the last: where every source outside the window reads.
     cells = np.zeros(size * size + 1, dtype=bool)
     cells[:-1] = occupancy.ravel()
-    return np.take(cells, _rotation_sources(size, _angle_key(angles_deg))).reshape(
-        -1, size, size)
+    sources = _rotation_sources(size, _angle_key(angles_deg))
+    return np.take(cells, sources if only is None else sources[only]).reshape(-1, size, size)
 
 
 def auto_voxel_size(point_clouds: list[np.ndarray]) -> float:

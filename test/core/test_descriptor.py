@@ -105,6 +105,14 @@ def test_rotation_is_counter_clockwise_about_the_sensor():
     assert np.array_equal(rotate_occupancy(occupancy, np.array([0.0]))[0], occupancy)
 
 
+def test_a_few_angles_of_a_set_turn_as_the_whole_set_does():
+    occupancy = np.random.default_rng(3).random((PARAMS.size, PARAMS.size)) < 0.2
+    angles = np.arange(0.0, 360.0, 5.0)
+    only = np.array([71, 3, 40])
+    assert np.array_equal(rotate_occupancy(occupancy, angles, only),
+                          rotate_occupancy(occupancy, angles)[only])
+
+
 def test_density_image_matches_point_descriptor():
     cloud = np.concatenate([column_at(x, y) for x, y in [(4.2, -7.7), (-12.3, 3.3), (0.2, 0.2)]])
     hdm = height_density(cloud, PARAMS)

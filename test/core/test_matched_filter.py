@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2, local_correlator
 
 
 def correlate_direct(query, reference, max_shift):
@@ -83,6 +83,15 @@ def test_shifted_copy_peaks_at_its_shift(rng):
     surface = correlate_fft2(image[None], reference, 8)[0]
     row, col = np.unravel_index(np.argmax(surface), surface.shape)
     assert (row - 8, col - 8) == (5, -3)
+
+
+def test_a_reference_correlator_serves_several_batches(rng):
+    reference = rng.normal(size=(30, 30)).astype(np.float32)
+    queries = rng.normal(size=(5, 30, 30)).astype(np.float32)
+    correlate = local_correlator(reference, 6)
+    for batch in (queries[:2], queries[2:], queries[[4, 0]]):
+        np.testing.assert_allclose(correlate(batch), correlate_fft2(batch, reference, 6),
+                                   atol=1e-5)
 
 
 def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):

@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.core.matched_filter import SpectralBank, local_correlator
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 from mf_lpr_ros.errors import ConfigError
 
@@ -27,7 +27,8 @@ class SearchBackend:
     name: str
     bank: SpectralBank
     prefilter: PolarSpectrumIndex | None
-    correlate_local: Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+    # (reference image, max shift) -> the windowed correlation of query batches with it.
+    local_correlator: Callable[[np.ndarray, int], Callable[[np.ndarray], np.ndarray]]
 
 
 def resolve_backend(name: str) -> str:
@@ -58,7 +59,7 @@ def make_backend(name: str, image_size: int, max_shift: int, capacity: int,
             torch_backend.TorchSpectralBank(image_size, image_size, max_shift, capacity, device),
             torch_backend.TorchPolarSpectrumIndex(image_size, capacity, device)
             if prefilter else None,
-            functools.partial(torch_backend.correlate_fft2, device=device))
+            functools.partial(torch_backend.local_correlator, device=device))
     return SearchBackend(resolved, SpectralBank(image_size, image_size, max_shift, capacity),
                          PolarSpectrumIndex(image_size, capacity=capacity) if prefilter else None,
-                         correlate_fft2)
+                         local_correlator)

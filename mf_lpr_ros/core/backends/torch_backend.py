@@ -9,11 +9,12 @@ torch (or "auto" finds a CUDA device).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import torch
-from scipy import fft as sp_fft
 
-from mf_lpr_ros.core.matched_filter import PreparedQueries, SpectralBank
+from mf_lpr_ros.core.matched_filter import PreparedQueries, SpectralBank, local_fft_shape
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 
 
@@ -123,18 +124,21 @@ class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
         super().adopt(np.array(features))
 
 
-def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int,
-                   device: torch.device | None = None) -> np.ndarray:
-    """matched_filter.correlate_fft2 on a torch device."""
+def local_correlator(reference: np.ndarray, max_shift: int, device: torch.device | None = None
+                     ) -> Callable[[np.ndarray], np.ndarray]:
+    """matched_filter.local_correlator on a torch device."""
     device = device or default_device()
-    height, width = reference.shape
-    shape = (sp_fft.next_fast_len(height + max_shift, real=True),
-             sp_fft.next_fast_len(width + max_shift, real=True))
-    query_spectra = torch.fft.rfft2(torch.from_numpy(np.asarray(queries, np.float32)).to(device),
-                                    s=shape)
-    ref_spectrum = torch.fft.rfft2(torch.from_numpy(np.asarray(reference, np.float32)).to(device),
-                                   s=shape)
-    full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=shape)
+    shape = local_fft_shape(*reference.shape, max_shift)
+    ref_spectrum = torch.fft.rfft2(
+        torch.from_numpy(np.asarray(reference, np.float32)).to(device), s=shape)
     window = torch.arange(-max_shift, max_shift + 1, device=device)
     rows, cols = window % shape[0], window % shape[1]
-    return full[:, rows][:, :, cols].cpu().numpy()
+
+    def correlate(queries: np.ndarray) -> np.ndarray:
+        query_spectra = torch.fft.rfft2(
+            torch.from_numpy(np.asarray(queries, np.float32)).to(device), s=shape)
+        full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=shape)
+        return full[:, rows][:, :, cols].cpu().numpy()
+
+    return correlate
+
