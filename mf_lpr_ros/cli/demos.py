@@ -27,7 +27,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print()
         print(demo.format_rows(rows))
         return 0
-    demo.run_demo(out, args.worlds, progress=not args.quiet, stride=args.stride)
+    demo.run_demo(out, args.worlds, progress=not args.quiet, stride=args.stride, rate=args.rate)
     return 0
 
 
@@ -56,6 +56,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     demo.add_argument("--data", help="a real bag with PointCloud2 and poses (loop_closure mode)")
     demo.add_argument("--preset", default="auto", help="with --data: a preset, or auto "
                       "(handheld for close-range scans, else kitti)")
-    demo.add_argument("--rate", type=float, default=1.0, help="with --data: replay speed-up")
+    demo.add_argument("--rate", type=float, default=1.0,
+                      help="replay speed-up (day 2 of the simulated worlds, or the --data bag)")
     demo.add_argument("--quiet", action="store_true")
     demo.set_defaults(handler=cmd_demo)

@@ -9,10 +9,11 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 @pytest.mark.slow
 def test_reduced_demo_runs_end_to_end(tmp_path, capsys):
     """The three simulated worlds, every 5th scan, through map_builder and the localiser over
-    DDS."""
-    assert main(["demo", "--out", str(tmp_path), "--stride", "5", "--quiet"]) == 0
+    DDS, day 2 replayed at twice the sensor's rate."""
+    assert main(["demo", "--out", str(tmp_path), "--stride", "5", "--rate", "2", "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "recall@1" in printed and "unseen scans searched and rejected" in printed
+    assert "at 20 Hz" in printed
     assert (tmp_path / "demo.png").stat().st_size > 50_000
     for world in ("urban", "forest", "sparse"):
         assert len(ReferenceMap.load(tmp_path / world / "map.mfmap")) > 10
