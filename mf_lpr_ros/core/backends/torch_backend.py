@@ -98,12 +98,12 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
         spectra = torch.fft.rfft(images, n=self.fft_length, dim=2).permute(2, 0, 1)
         rows = torch.zeros((self.n_freqs, len(images), height + 2 * shift),
                            dtype=torch.complex64, device=self.device)
-        rows[:, :, shift: shift + height] = spectra
+        rows[:, :, shift: shift + height] = spectra.conj()
         # (K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
         return PreparedQueries(rows.unfold(2, height, 1).flip(2))
 
     def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
-        return torch.conj_physical(windows).reshape(self.n_freqs, -1, self.height)
+        return windows.reshape(self.n_freqs, -1, self.height)
 
 
 class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
