@@ -47,5 +47,10 @@ class NumpyArrays:
         return np.moveaxis(values.view(np.float32).reshape(*values.shape, 2), -1, 1)
 
     @staticmethod
+    def _multiply_into(left, right, out) -> None:
+        """out[...] = left @ right without a temporary (out may be a strided view)."""
+        np.matmul(left, right, out=out)
+
+    @staticmethod
     def _nbytes(array) -> int:
         return array.nbytes

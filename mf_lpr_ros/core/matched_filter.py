@@ -262,9 +262,9 @@ class SpectralBank(NumpyArrays):
         bounds = np.searchsorted(queries, np.arange(allowed.shape[1] + 1))
         for query in np.unique(queries):
             first, last = int(bounds[query]), int(bounds[query + 1])
-            spectra[:, :, first:last] = (self._query_operator(prepared, int(query))
-                                         @ self._columns(candidates[self._index(
-                                             positions[first:last])]))
+            self._multiply_into(self._query_operator(prepared, int(query)),
+                                self._columns(candidates[self._index(positions[first:last])]),
+                                spectra[:, :, first:last])
         # One inverse for every pair: a product as wide as all of them runs at BLAS speed.
         scores = self._windowed_inverse(spectra).reshape(self.n_shifts, self.n_shifts,
                                                           len(queries))

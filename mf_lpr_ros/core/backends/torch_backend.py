@@ -58,6 +58,10 @@ class TorchArrays:
         return torch.view_as_real(values).movedim(-1, 1)
 
     @staticmethod
+    def _multiply_into(left: torch.Tensor, right: torch.Tensor, out: torch.Tensor) -> None:
+        out.copy_(left @ right)
+
+    @staticmethod
     def _nbytes(tensor: torch.Tensor) -> int:
         return tensor.numel() * tensor.element_size()
 
