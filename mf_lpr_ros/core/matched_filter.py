@@ -151,10 +151,11 @@ class SpectralBank(NumpyArrays):
         return self._operator.reshape(shape)
 
     def _one_query_buffer(self) -> np.ndarray:
+        # Called for every heading of every query: a tuple comparison, not np.prod (~17 us).
         shape = (self.n_freqs, 1, self.n_shifts, self.height)
-        if self._one_query_operator.size != np.prod(shape):
+        if self._one_query_operator.shape != shape:
             self._one_query_operator = np.empty(shape, dtype=np.complex64)
-        return self._one_query_operator.reshape(shape)
+        return self._one_query_operator
 
     def _expand(self, windows: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The operator of row windows (K, A, 2S+1, H), copied into out (same shape)."""
