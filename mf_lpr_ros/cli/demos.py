@@ -15,6 +15,9 @@ def cmd_global_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    # Before anything is simulated or replayed: a bad rate would only fail at the first replay.
+    if not args.rate > 0:
+        raise ValueError(f"--rate must be > 0, got {args.rate}")
     from mf_lpr_ros.ros import demo
 
     out = Path(args.out)

@@ -141,7 +141,7 @@ def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int
     start = 1_700_086_400.0
     searched = np.zeros(len(truth), bool)
     searched[[int(round((stamp - start) * SCAN_HZ)) for stamp in searched_stamps]] = True
-    estimates = {int(round((stamp_to_seconds(m.header.stamp) - start) * 10)): _planar(m)
+    estimates = {int(round((stamp_to_seconds(m.header.stamp) - start) * SCAN_HZ)): _planar(m)
                  for m in poses}
     translation, yaw, correct, false_unseen = [], [], 0, 0
     for index, estimate in estimates.items():

@@ -78,6 +78,10 @@ def test_errors_are_reported_not_raised(tmp_path, capsys):
     assert "truncated map file" in capsys.readouterr().err
     assert main(["build-map", str(tmp_path), "--out", str(tmp_path / "m.mfmap")]) == 2
     assert "unknown dataset layout" in capsys.readouterr().err
+    # Refused before a world is simulated: nothing is written.
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--rate", "0"]) == 2
+    assert "--rate must be > 0, got 0.0" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
 
 
 def test_icp_refinement_needs_clouds_and_tightens_poses(traversals, tmp_path, capsys):
