@@ -227,10 +227,11 @@ class MatchedFilterIndex:
             upright = self._turned_and_pooled(occupancy, headings[:1])[0]
             searched = self._candidates(upright, n_refs, self.search.prefilter_top_k)
             allowed = self._allowed_headings(upright, searched)
-            if allowed is not None and not allowed.any(axis=0).all():
+            scored = None if allowed is None else allowed.any(axis=0)
+            if scored is not None and not scored.all():
                 # Only the headings some candidate is scored at are turned: along a route the
                 # candidates face alike (KITTI 00: ~26 of 72).
-                headings = np.flatnonzero(allowed.any(axis=0))
+                headings = np.flatnonzero(scored)
                 allowed = allowed[:, headings]
         else:
             searched = np.arange(n_refs)
@@ -410,10 +411,17 @@ class MatchedFilterIndex:
         angles = global_angle + self.local_offsets
         reference_image = weighted(self.map.occupancy(reference), w, self.covered)
 
-        def turned(indices: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-            """The query's weights at angles[indices], and the footprints they are under."""
+        # Each angle turned: its weights and, when the footprint turns too, its footprint.
+        turned_at: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+
+        def turned(indices: np.ndarray) -> np.ndarray:
+            """The query's weights at angles[indices]."""
             covered = self._query_covered(angles, indices)
-            return weighted(rotate_occupancy(occupancy, angles, indices), w, covered), covered
+            queries = weighted(rotate_occupancy(occupancy, angles, indices), w, covered)
+            for k, index in enumerate(indices):
+                turned_at[int(index)] = (queries[k], covered[k] if covered is not None
+                                         and covered.ndim == 3 else None)
+            return queries
 
         surface = self._coarse_to_fine(turned, len(angles),
                                        self._local_correlator(reference_image, self.high_shift))
@@ -421,12 +429,12 @@ class MatchedFilterIndex:
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
         raw = float(surface[a, row, col])
-        best_query, covered = turned(np.array([a]))
-        query_norm = float(np.linalg.norm(best_query[0]))
+        best_query, best_covered = turned_at[int(a)]
+        query_norm = float(np.linalg.norm(best_query))
         if self._query_seen is not None:
             # The cosine over the cells the query saw: the reference beyond them is unknown
             # to the query, not a mismatch.
-            reference_norm = _norm_under(reference_image, covered[0], row - self.high_shift,
+            reference_norm = _norm_under(reference_image, best_covered, row - self.high_shift,
                                          col - self.high_shift)
         confidence = raw / max(query_norm * reference_norm, 1e-9)
         return _LocalPeak(reference=reference, score=raw / normaliser,
@@ -463,9 +471,8 @@ class MatchedFilterIndex:
                               self.params.unoccupied_weight, self.params.pool,
                               self._query_covered(self.global_angles, only))
 
-    def _coarse_to_fine(self, turned: Callable[[np.ndarray], tuple[np.ndarray, object]],
-                        n_angles: int, correlate: Callable[[np.ndarray], np.ndarray]
-                        ) -> np.ndarray:
+    def _coarse_to_fine(self, turned: Callable[[np.ndarray], np.ndarray], n_angles: int,
+                        correlate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:
         every other angle first, then the two beside the best of those; the rest stay -inf
         (and the query is never turned to them). The score falls off smoothly over a few
@@ -473,14 +480,14 @@ class MatchedFilterIndex:
         fit needs only it and its two neighbours: ~3/4 of the correlations of all angles.
         turned(indices) gives the query at those angles, correlate the surfaces of queries."""
         if n_angles < 5:
-            return correlate(turned(np.arange(n_angles))[0])
+            return correlate(turned(np.arange(n_angles)))
         shifts = 2 * self.high_shift + 1
         surface = np.full((n_angles, shifts, shifts), -np.inf, dtype=np.float32)
         coarse = np.arange(0, n_angles, 2)
-        surface[coarse] = correlate(turned(coarse)[0])
+        surface[coarse] = correlate(turned(coarse))
         best = int(coarse[np.argmax(surface[coarse].reshape(len(coarse), -1).max(axis=1))])
         beside = np.array([k for k in (best - 1, best + 1) if 0 <= k < n_angles])
-        surface[beside] = correlate(turned(beside)[0])
+        surface[beside] = correlate(turned(beside))
         return surface
 
     def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
