@@ -268,7 +268,6 @@ class MatchedFilterIndex:
                              self.global_angles[headings[int(query_index)]])
                  for reference, (query_index, *_) in zip(searched[finalists], located)]
         peaks.sort(key=lambda peak: -peak.score)
-        peaks = self._shortest_shift_first(peaks)
         result = self._result(peaks[0], ranked)
         distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
         nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, columns,
@@ -299,17 +298,6 @@ class MatchedFilterIndex:
         offset = (self.global_angles[None, :] - angles[:, None] + 90.0) % 180.0 - 90.0
         # Never narrower than half a step: each candidate keeps at least its nearest heading.
         return np.abs(offset) <= max(window, self.search.rotation_step_deg / 2)
-
-    def _shortest_shift_first(self, peaks: list["_LocalPeak"]) -> list["_LocalPeak"]:
-        """peaks (best score first) with the one of least shift among those scoring within
-        rerank_margin of the best moved to the front: of two views of one place, the nearer."""
-        if self.search.rerank_margin <= 0 or len(peaks) < 2:
-            return peaks
-        floor = (1.0 - self.search.rerank_margin) * peaks[0].score
-        close = [k for k, peak in enumerate(peaks) if peak.score >= floor]
-        nearest = min(close, key=lambda k: np.hypot(peaks[k].row - self.high_shift,
-                                                     peaks[k].col - self.high_shift))
-        return [peaks[nearest]] + peaks[:nearest] + peaks[nearest + 1:]
 
     def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
                        peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
