@@ -13,7 +13,7 @@ REPOSITORY = PACKAGE.parent
 # Lowest first: a module may import from its own layer and the layers before it. The package
 # itself ("mf_lpr_ros", its __init__: the public API) is the top, so no module may import it.
 LAYERS = ["version", "errors", "params", "config", "optional", "progress", "core", "io",
-          "datasets", "live", "pipeline", "evaluation", "sim", "ros", "cli", ""]
+          "datasets", "live", "pipeline", "sim", "evaluation", "ros", "cli", ""]
 
 
 def _layer(module: str) -> int:

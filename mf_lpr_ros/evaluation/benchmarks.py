@@ -41,6 +41,11 @@ _KITTI00_VALIDATION = Protocol(5.0, reference_spacing_m=0.0, reference_frames=(0
                                query_frames=(1700, 4540))
 
 
+# The simulated worlds of the tuning suite: the only tuning sets where `auto` meets a dense
+# spinning sensor next to a sparse one (docs/RESULTS.md, session 15).
+_SIMULATED_WORLDS = ("urban", "forest", "sparse")
+
+
 _BEVPLACE_HOLDOUT = _bevplace("holdout/kitti_bev", ("02", "05", "06"))
 
 
@@ -136,8 +141,10 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
           "the mean rises and no set drops more than a point; docs/RESULTS.md keeps each "
           "change's table): KITTI 00 and 00_rot on BEVPlace's protocol, KITTI 00 every-frame "
           "loop closures (kitti, 5 m, 100 frames apart), BALM (handheld and auto, 3 m, 50 "
-          "frames), the HKU Avia keyframes (default, auto and livox, 5 m, 50 frames) and, as "
-          "validation, KITTI 00 cut elsewhere (database frames 0-1499, queries 1700-4540)",
+          "frames), the HKU Avia keyframes (default, auto and livox, 5 m, 50 frames), the "
+          "simulator's urban (VLP-16), forest (HDL-32) and sparse (Mid-360-like) worlds, day 2 "
+          "off the worlds' grid against day 1 (auto and default, 5 m) and, as validation, KITTI "
+          "00 cut elsewhere (database frames 0-1499, queries 1700-4540)",
           _BEVPLACE_TUNING[0] + (
               Rule("single", "kitti", Protocol(5.0, exclude_recent_frames=100),
                    ("kitti_bev/00",), label="closures"),
@@ -151,6 +158,8 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
                    ("hku_mb_livox",), by_preset=True),
               Rule("single", "livox", Protocol(5.0, exclude_recent_frames=50),
                    ("hku_mb_livox",), by_preset=True),
+              Rule("simulated", "auto", Protocol(5.0), _SIMULATED_WORLDS, by_preset=True),
+              Rule("simulated", "default", Protocol(5.0), _SIMULATED_WORLDS, by_preset=True),
               Rule("single", "kitti", _KITTI00_VALIDATION, ("kitti_bev/00",),
                    label="validation")),
           _BEVPLACE_TUNING[1]),

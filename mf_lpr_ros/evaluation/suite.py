@@ -23,6 +23,7 @@ from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.evaluation.methods import METHODS
 from mf_lpr_ros.evaluation.protocol import PairResult, Protocol, evaluate_pair
 from mf_lpr_ros.progress import progress_bar
+from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, SIMULATION_VERSION, WORLDS, world_bags
 
 DEFAULT_METHODS = ("mf-lpr", "scan-context")
 TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m",
@@ -42,6 +43,8 @@ class Pair:
     preset: str
     protocol: Protocol
     query_stamps: tuple[float, ...] | None = None
+    # A simulated world (sim.simulator.WORLDS): its bags are written before the run.
+    simulated: str | None = None
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,10 @@ class Rule:
     cross: every reference against every query folder. ordered: every ordered pair of distinct
     folders within each group (a group is one pattern), queries restricted to the split named by
     query_split (a file under the root, '{group}' replaced by the group's folder name).
-    single: each folder's own loop closures. by_preset: the preset is appended to the pairs'
+    single: each folder's own loop closures. simulated: each world named in references
+    (sim.simulator.WORLDS), day 2 against day 1 with day 2 off the world's grid
+    (sim.simulator.OFF_GRID_DAY2), written under simulated_root() when first run, not under the
+    dataset root. by_preset: the preset is appended to the pairs'
     names (rules that run the same folders under different presets); label, likewise a word
     of the rule's own (rules that run the same folders under different protocols)."""
 
@@ -111,7 +117,21 @@ def _rule_pairs(rule: Rule, root: Path) -> list[Pair]:
     return pairs
 
 
+def simulated_root() -> Path:
+    """Where simulated worlds' bags are written: $MF_LPR_SIM_CACHE, else
+    ~/.cache/mf_lpr_ros/simulated."""
+    configured = os.environ.get("MF_LPR_SIM_CACHE")
+    return Path(configured) if configured else Path.home() / ".cache" / "mf_lpr_ros" / "simulated"
+
+
 def _untagged_pairs(rule: Rule, root: Path) -> list[Pair]:
+    if rule.kind == "simulated":
+        unknown = [world for world in rule.references if world not in WORLDS]
+        if unknown:
+            raise ValueError(f"unknown simulated worlds {unknown}; choose from {sorted(WORLDS)}")
+        folders = {world: simulated_root() / f"{world}_off_grid" for world in rule.references}
+        return [Pair(f"sim_{world}", folder / "day1", folder / "day2", rule.preset,
+                     rule.protocol, simulated=world) for world, folder in folders.items()]
     if rule.kind == "single":
         return [Pair(_label(root, path), path, None, rule.preset, rule.protocol)
                 for pattern in rule.references for path in _matches(root, pattern)]
@@ -201,6 +221,9 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
 def run_unit(pair: Pair, method: str, path: Path) -> PairResult:
     """One (pair, method) run, its result written atomically to path (the unit of a suite,
     serial or on a cluster)."""
+    if pair.simulated is not None:
+        world_bags(pair.simulated, pair.reference.parent, day2_offset=OFF_GRID_DAY2,
+                   progress=False)
     reference = open_source(pair.reference)
     query = open_source(pair.query) if pair.query is not None else None
     stamps = np.array(pair.query_stamps) if pair.query_stamps is not None else None
@@ -214,7 +237,10 @@ def _fingerprint(pair: Pair, method: str) -> dict:
     return {"pair": pair.name, "reference": str(pair.reference),
             "query": str(pair.query) if pair.query else None, "method": method,
             "config": preset(pair.preset).to_dict(), "protocol": asdict(pair.protocol),
-            "n_query_stamps": None if pair.query_stamps is None else len(pair.query_stamps)}
+            "n_query_stamps": None if pair.query_stamps is None else len(pair.query_stamps),
+            "simulated": None if pair.simulated is None else {
+                "world": pair.simulated, "version": SIMULATION_VERSION,
+                "day2_offset": list(OFF_GRID_DAY2)}}
 
 
 def _load_saved(path: Path, fingerprint: dict) -> PairResult | None:

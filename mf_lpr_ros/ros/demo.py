@@ -9,7 +9,6 @@ With a real bag: map_builder and the localiser in loop_closure mode listen to on
 from __future__ import annotations
 
 import importlib.util
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,10 +31,8 @@ from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import decode_loop_closure
 from mf_lpr_ros.ros.pose_graph import PoseGraphNode
 from mf_lpr_ros.ros.replay import replay_bag
-from mf_lpr_ros.sim.simulator import WORLDS, write_bag
+from mf_lpr_ros.sim.simulator import world_bags
 
-# Bump when the simulator's output changes, so cached bags are rebuilt.
-SIMULATION_VERSION = 2
 WORLD_PRESETS = {"urban": "kitti", "forest": "default", "sparse": "auto"}
 # Worlds whose localiser also gets the day's odometry (pose_source odom): the sparse sensor's
 # map is built from submaps (preset auto chooses them), and its queries need the odometry to
@@ -81,33 +78,11 @@ class WorldResult:
     reference_xy: np.ndarray | None = None
 
 
-def simulate(name: str, folder: Path, progress: bool, stride: int = 1
-             ) -> tuple[Path, Path, np.ndarray]:
-    """The world's two bags (written once, then reused) and day 2's ground truth; stride > 1
-    keeps every stride-th scan (a quicker, sparser demo)."""
-    traversals = WORLDS[name]()
-    traversals.first, traversals.second = traversals.first[::stride], traversals.second[::stride]
-    stamp = folder / "simulation.json"
-    key = {"version": SIMULATION_VERSION, "world": name, "stride": stride}
-    first, second = folder / "day1", folder / "day2"
-    if not (stamp.exists() and json.loads(stamp.read_text()) == key):
-        import shutil
-
-        for bag in (first, second):
-            shutil.rmtree(bag, ignore_errors=True)
-        folder.mkdir(parents=True, exist_ok=True)
-        write_bag(first, traversals.scene, traversals.sensor, traversals.first, seed=1,
-                  rate_hz=SCAN_HZ, progress=progress)
-        write_bag(second, traversals.second_day, traversals.sensor, traversals.second, seed=2,
-                  start_s=1_700_086_400.0, rate_hz=SCAN_HZ, progress=progress)
-        stamp.write_text(json.dumps(key))
-    return first, second, traversals.second
-
-
 def run_world(name: str, out: Path, graph: RosGraph, progress: bool, stride: int = 1,
               rate: float = 1.0) -> WorldResult:
     folder = out / name
-    first, second, truth = simulate(name, folder, progress, stride)
+    first, second, truth = world_bags(name, folder, stride=stride, rate_hz=SCAN_HZ,
+                                      progress=progress)
     preset = WORLD_PRESETS[name]
     map_path = folder / "map.mfmap"
 

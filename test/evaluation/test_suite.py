@@ -1,6 +1,7 @@
 """Benchmark presets resolve to the right pairs; the runner resumes and writes its outputs."""
 
 import csv
+import functools
 import json
 import pickle
 
@@ -8,11 +9,14 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.cli import main
+from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.evaluation import suite as suite_module
 from mf_lpr_ros.evaluation.benchmarks import SUITES
 from mf_lpr_ros.evaluation.protocol import Protocol
 from mf_lpr_ros.evaluation.suite import Published, Rule, Suite, run_suite
+from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, WORLDS, world_bags
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
@@ -167,3 +171,27 @@ def test_rules_by_preset_name_their_pairs_apart(tmp_path):
                                                    ("site_a [handheld]", "handheld")]
     holdout = SUITES["real-holdout"].rules
     assert {rule.preset for rule in holdout} >= {"auto"} and all(r.by_preset for r in holdout)
+
+
+def test_simulated_rules_pair_each_world_off_its_grid(tmp_path, monkeypatch):
+    monkeypatch.setenv("MF_LPR_SIM_CACHE", str(tmp_path / "cache"))
+    suite = Suite("x", "", (Rule("simulated", "auto", Protocol(5.0), ("urban", "sparse"),
+                                 by_preset=True),))
+    pairs = suite.pairs(tmp_path)
+    assert [(p.name, p.simulated) for p in pairs] == [("sim_urban [auto]", "urban"),
+                                                      ("sim_sparse [auto]", "sparse")]
+    assert pairs[0].reference == tmp_path / "cache" / "urban_off_grid" / "day1"
+    assert pairs[0].query == tmp_path / "cache" / "urban_off_grid" / "day2"
+    fingerprint = suite_module._fingerprint(pairs[0], "mf-lpr")
+    assert fingerprint["simulated"]["world"] == "urban"
+    assert fingerprint["simulated"]["day2_offset"] == list(OFF_GRID_DAY2)
+    with pytest.raises(ValueError, match="unknown simulated worlds"):
+        Suite("y", "", (Rule("simulated", "auto", Protocol(5.0), ("moon",)),)).pairs(tmp_path)
+    # A run writes the world's bags first (every 80th scan here, to be quick), day 2 moved.
+    monkeypatch.setattr(suite_module, "world_bags", functools.partial(world_bags, stride=80))
+    result = suite_module.run_unit(pairs[0], "mf-lpr", tmp_path / "out.json")
+    day2 = RosbagSequence(pairs[0].query)
+    expected = WORLDS["urban"]().second[::80] + np.r_[OFF_GRID_DAY2[:2],
+                                                        np.radians(OFF_GRID_DAY2[2])]
+    assert np.allclose(planar(day2.poses), expected, atol=1e-6)
+    assert result.summary["n_evaluated"] == len(day2)

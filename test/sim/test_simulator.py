@@ -11,7 +11,7 @@ from mf_lpr_ros.core.pose import planar, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.sim.lidar import VLP16, SensorModel, _box_hits, _cylinder_hits, _sphere_hits, cast
 from mf_lpr_ros.sim.scenes import Scene, urban_scene
-from mf_lpr_ros.sim.simulator import WORLDS, write_bag
+from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, WORLDS, world_bags, write_bag
 
 EXACT = SensorModel("test", (-10.0, 0.0, 10.0), azimuth_step_deg=1.0, range_noise_m=0.0,
                     dropout=0.0, max_range_m=60.0)
@@ -86,3 +86,23 @@ def test_bag_holds_scans_and_poses_of_the_trajectory(tmp_path):
     again = cast(urban.scene, urban.sensor, sensor_pose(*trajectory[0]), np.random.default_rng(3))
     assert np.array_equal(scans[0].points, again)
     assert all(math.isclose(s.pose[2, 3], 1.8) for s in scans)
+
+
+def test_world_bags_are_written_once_and_moved_off_the_grid_when_asked(tmp_path):
+    first, second, truth = world_bags("urban", tmp_path, stride=80, progress=False)
+    written = second.stat().st_mtime_ns
+    on_grid = RosbagSequence(second)
+    assert np.allclose(planar(on_grid.poses), WORLDS["urban"]().second[::80], atol=1e-9)
+    assert np.allclose(truth, planar(on_grid.poses), atol=1e-9)
+    # The same request reuses the bags; another offset rewrites them, day 1 unmoved.
+    world_bags("urban", tmp_path, stride=80, progress=False)
+    assert second.stat().st_mtime_ns == written
+    _, _, moved = world_bags("urban", tmp_path, stride=80, day2_offset=OFF_GRID_DAY2,
+                             progress=False)
+    off_grid = RosbagSequence(second)
+    shift = planar(off_grid.poses) - planar(on_grid.poses)
+    assert np.allclose(shift[:, :2], OFF_GRID_DAY2[:2], atol=1e-6)
+    assert np.allclose(np.degrees(shift[:, 2]), OFF_GRID_DAY2[2], atol=1e-6)
+    assert np.allclose(moved, planar(off_grid.poses), atol=1e-9)
+    assert np.allclose(planar(RosbagSequence(first).poses), WORLDS["urban"]().first[::80],
+                       atol=1e-9)
