@@ -4,9 +4,10 @@ A few scans are measured (SensorProfile) and the descriptor follows from rules, 
 where it is applied (auto_descriptor):
 - voxel size: the paper's inverse-linear rule on occupied 1 m voxels per scan
   (core.descriptor.auto_voxel_size);
-- height band: the ground is found below the sensor as the densest thin layer of low points,
-  and the band keeps 0.5 m to 4.5 m above it (KITTI's band, -1.2 to 3.0 m at a 1.73 m mount,
-  relative to its ground), so a low mount keeps what a high one keeps;
+- height floor: the ground is found below the sensor as the densest thin layer of low points,
+  and points less than GROUND_CLEARANCE_M above it are dropped, so a low mount keeps what a
+  high one keeps; nothing is cut above (a ceiling at 4.5 m, KITTI's band relative to its
+  ground, cost tall structure: docs/RESULTS.md, session 15);
 - levelling: on when the scans' poses tilt (roll or pitch spread over 3 degrees, a handheld or
   vehicle-on-slopes sensor) and poses exist;
 - submaps: a narrow sensor (field of view under FULL_CIRCLE_BELOW_DEG) or a sparse one (fewer
@@ -44,7 +45,7 @@ from mf_lpr_ros.params import DescriptorParams
 
 SAMPLE_SCANS = 12
 GROUND_BIN_M = 0.1
-BAND_ABOVE_GROUND_M = (0.5, 4.5)
+GROUND_CLEARANCE_M = 0.5
 TILT_SPREAD_DEG = 3.0
 AZIMUTH_BINS = 72
 # Returns per occupied 1 m voxel of one scan: ~1.5 for the simulated Mid-360, 4-5 for the
@@ -114,9 +115,7 @@ def auto_descriptor(profile: SensorProfile, base: DescriptorParams) -> Descripto
     voxel = round(min(voxel_size_for_density(profile.occupied_voxels), reach), 2)
     changes: dict = {"voxel_size": voxel}
     if math.isfinite(profile.ground_below_sensor_m):
-        low, high = BAND_ABOVE_GROUND_M
-        changes["z_min"] = round(low - profile.ground_below_sensor_m, 2)
-        changes["z_max"] = round(high - profile.ground_below_sensor_m, 2)
+        changes["z_min"] = round(GROUND_CLEARANCE_M - profile.ground_below_sensor_m, 2)
     if math.isfinite(profile.tilt_spread_deg):
         changes["level"] = profile.tilt_spread_deg > TILT_SPREAD_DEG
     if needs_submaps(profile):
@@ -166,7 +165,7 @@ def describe_choice(profile: SensorProfile, params: DescriptorParams) -> str:
               f"no ground)" if profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG else "")
     return (f"preset auto on {profile.n_scans} scans: {profile.occupied_voxels:.0f} occupied 1 m "
             f"voxels/scan, 95 % of points within {profile.range_p95_m:.0f} m -> voxel "
-            f"{params.voxel_size:.2f} m; {ground} -> z band [{params.z_min}, {params.z_max}] m; "
+            f"{params.voxel_size:.2f} m; {ground} -> z from {params.z_min} m; "
             f"level {params.level}; field of view {profile.horizontal_fov_deg:.0f} deg{narrow}; "
             f"{profile.returns_per_voxel:.1f} returns per occupied voxel -> "
             + (f"submaps of {params.submap_m:g} m" if params.submap_m > 0 else "single scans"))
