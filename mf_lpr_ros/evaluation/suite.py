@@ -182,6 +182,9 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
     pairs = suite.pairs(root)
     out = Path(out)
     (out / "pairs").mkdir(parents=True, exist_ok=True)
+    # Written here, once per world, so that units running at once never write the same bags.
+    for pair in {pair.reference: pair for pair in pairs if pair.simulated}.values():
+        _write_simulated(pair, progress)
     results: dict[tuple[str, str], PairResult] = {}
     to_run = []
     for pair in pairs:
@@ -222,8 +225,7 @@ def run_unit(pair: Pair, method: str, path: Path) -> PairResult:
     """One (pair, method) run, its result written atomically to path (the unit of a suite,
     serial or on a cluster)."""
     if pair.simulated is not None:
-        world_bags(pair.simulated, pair.reference.parent, day2_offset=OFF_GRID_DAY2,
-                   progress=False)
+        _write_simulated(pair, progress=False)
     reference = open_source(pair.reference)
     query = open_source(pair.query) if pair.query is not None else None
     stamps = np.array(pair.query_stamps) if pair.query_stamps is not None else None
@@ -231,6 +233,12 @@ def run_unit(pair: Pair, method: str, path: Path) -> PairResult:
                            query_stamps=stamps, method=method, progress=False)
     write_json_atomic(path, {"fingerprint": _fingerprint(pair, method), **result.to_dict()})
     return result
+
+
+def _write_simulated(pair: Pair, progress: bool) -> None:
+    """A simulated pair's bags, written unless already there (sim.simulator.world_bags)."""
+    world_bags(pair.simulated, pair.reference.parent, day2_offset=OFF_GRID_DAY2,
+               progress=progress)
 
 
 def _fingerprint(pair: Pair, method: str) -> dict:

@@ -195,3 +195,23 @@ def test_simulated_rules_pair_each_world_off_its_grid(tmp_path, monkeypatch):
                                                         np.radians(OFF_GRID_DAY2[2])]
     assert np.allclose(planar(day2.poses), expected, atol=1e-6)
     assert result.summary["n_evaluated"] == len(day2)
+
+
+def test_a_suite_writes_each_simulated_world_once_before_its_runs(tmp_path, monkeypatch):
+    monkeypatch.setenv("MF_LPR_SIM_CACHE", str(tmp_path / "cache"))
+    written = []
+
+    def quick_world_bags(name, folder, **kwargs):
+        written.append((name, folder, folder.joinpath("day2").exists()))
+        return world_bags(name, folder, stride=80, **kwargs)
+
+    monkeypatch.setattr(suite_module, "world_bags", quick_world_bags)
+    suite = Suite("x", "", tuple(Rule("simulated", name, Protocol(5.0), ("urban",),
+                                      by_preset=True) for name in ("auto", "default")))
+    rows = run_suite(suite, tmp_path, tmp_path / "out", methods=["mf-lpr"], progress=False,
+                     figures=False)
+    folder = tmp_path / "cache" / "urban_off_grid"
+    # First by the suite itself, before any run; each run then finds the bags there.
+    assert written[0] == ("urban", folder, False)
+    assert [entry[2] for entry in written[1:]] == [True, True]
+    assert [row["pair"] for row in rows[:2]] == ["sim_urban [auto]", "sim_urban [default]"]
