@@ -219,13 +219,28 @@ class MatchedFilterIndex:
         n_refs = len(self) if n_active is None else min(n_active, len(self))
         if n_refs <= 0:
             return None
+        top_k, retry_top_k = self.search.prefilter_top_k, self.search.prefilter_retry_top_k
+        result = self._search(occupancy, n_refs, top_k)
+        if (self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
+                and result.confidence < self.search.min_confidence):
+            # Where the prefilter left the true place out, the match found instead is weak
+            # (SearchParams.prefilter_retry_top_k): search its wider list.
+            first_ms = result.timings_ms
+            result = self._search(occupancy, n_refs, retry_top_k)
+            result.timings_ms = {stage: ms + first_ms[stage]
+                                 for stage, ms in result.timings_ms.items()}
+        return result
+
+    def _search(self, occupancy: np.ndarray, n_refs: int, top_k: int) -> MatchResult:
+        """The two stages over the prefilter's top_k candidates (every reference when the
+        prefilter is off or top_k covers them all)."""
         started = time.perf_counter()
-        prefiltered = self.prefilter is not None and n_refs > self.search.prefilter_top_k
+        prefiltered = self.prefilter is not None and n_refs > top_k
         headings, allowed = np.arange(len(self.global_angles)), None
         if prefiltered:
             # global_angles[0] is 0: the unrotated query.
             upright = self._turned_and_pooled(occupancy, headings[:1])[0]
-            searched = self._candidates(upright, n_refs, self.search.prefilter_top_k)
+            searched = self._candidates(upright, n_refs, top_k)
             allowed = self._allowed_headings(upright, searched)
             scored = None if allowed is None else allowed.any(axis=0)
             if scored is not None and not scored.all():

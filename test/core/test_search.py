@@ -86,6 +86,48 @@ def test_unseen_place_gets_low_confidence(world, synthetic_map):
     assert unseen.confidence < 0.5 * seen.confidence
 
 
+def _ranking_prefilter(index, ranking):
+    """index's prefilter made to rank the references in the given order; records each k."""
+    asked = []
+
+    def top(image, k, stop=None):
+        asked.append(k)
+        return np.array([r for r in ranking if stop is None or r < stop][:k])
+    index.prefilter.top = top
+    return asked
+
+
+@pytest.mark.parametrize("retry_top_k", [0, 4])
+def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(world, synthetic_map,
+                                                                      retry_top_k):
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    query = describe_points(points, PARAMS)
+    index = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=1, prefilter_retry_top_k=retry_top_k, prefilter_expand_m=0.0))
+    # The prefilter puts the true place (reference 0) fourth.
+    asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
+    result = index.query(query)
+    if retry_top_k:
+        assert asked == [1, 4]
+        assert result.reference_index == 0
+        assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.15
+    else:
+        assert asked == [1]
+        assert result.reference_index == 3
+        assert result.confidence < SearchParams().min_confidence
+
+
+def test_a_strong_match_is_not_searched_again(world, synthetic_map):
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    index = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=1, prefilter_retry_top_k=4, prefilter_expand_m=0.0))
+    asked = _ranking_prefilter(index, [0, 3, 4, 1, 2])
+    result = index.query(describe_points(points, PARAMS))
+    assert asked == [1]
+    assert result.reference_index == 0
+    assert result.confidence >= SearchParams().min_confidence
+
+
 def test_n_active_restricts_the_search(world, synthetic_map):
     points, _ = scan_world(world, 20, 20, 0.3, np.random.default_rng(4))
     index = MatchedFilterIndex(synthetic_map, SearchParams())
