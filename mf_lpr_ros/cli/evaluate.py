@@ -120,6 +120,14 @@ def cmd_suite(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_suite_diff(args: argparse.Namespace) -> int:
+    from mf_lpr_ros.evaluation.tuning_rule import compare_runs, format_comparison
+
+    comparison = compare_runs(Path(args.before), Path(args.after))
+    print(format_comparison(comparison))
+    return 0 if comparison.passes or not args.check else 1
+
+
 def register(commands: argparse._SubParsersAction) -> None:
     protocol_help = ("With --query: references from --reference, queries from --query. Without: "
                      "the single-sequence loop-closure protocol (each scan queries the references "
@@ -191,3 +199,16 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_scheduler(suite)
     suite.add_argument("--quiet", action="store_true", help="no progress bars")
     suite.set_defaults(handler=cmd_suite)
+    diff = commands.add_parser(
+        "suite-diff", help="two runs of a suite before -> after, judged by the tuning rule",
+        description="Reads two `mf-lpr suite` output folders (before and after a change) and "
+                    "prints the before -> after table docs/RESULTS.md keeps, the share of "
+                    "positive queries matched to the same reference, and the tuning rule's "
+                    "verdict: the suite's mean (recall@1, corrected recall@1, recall published "
+                    "over every pair) rises, no recall drops by more than a point on any pair, "
+                    "no false closure is added.")
+    diff.add_argument("before", help="the suite's output folder before the change")
+    diff.add_argument("after", help="the suite's output folder after the change")
+    diff.add_argument("--check", action="store_true",
+                      help="exit 1 when the change does not pass the rule")
+    diff.set_defaults(handler=cmd_suite_diff)

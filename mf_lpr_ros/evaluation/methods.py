@@ -34,7 +34,8 @@ class Retrieval:
     """A method's answer for one query: the reference (position in the reference list, -1 for
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
-    (their order among this method's queries) it would now publish, confirmed late."""
+    (their order among this method's queries) it would now publish, confirmed late;
+    distinctiveness and reason: see QueryRecord."""
 
     reference: int
     pose: np.ndarray
@@ -44,6 +45,8 @@ class Retrieval:
     ms_local: float = 0.0
     published: bool = False
     confirms: list[int] = field(default_factory=list)
+    distinctiveness: float = math.nan
+    reason: str = ""
 
 
 class MatchedFilterMethod:
@@ -86,7 +89,7 @@ class MatchedFilterMethod:
         self._queries += 1
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
-                         verdict.confirms)
+                         verdict.confirms, match.distinctiveness, verdict.reason)
 
 
 class ScanContextMethod:

@@ -3,6 +3,7 @@ records."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,9 @@ class QueryRecord:
     within tolerance); retrieved_distance_m, candidate_distances_m: the matched reference and
     the best RECALL_AT_N candidates. rte_m, rre_deg: the estimate's pose error. published:
     the method would publish the match as a loop closure. ms_*: time per stage.
+    distinctiveness, reason: MF-LPR's MatchResult.distinctiveness and the verification's
+    reason for the verdict (NaN and "" for methods without them): why a revisit was not
+    published can be read off a run.
     """
 
     query_index: int
@@ -38,6 +42,8 @@ class QueryRecord:
     ms_descriptor: float
     ms_global: float
     ms_local: float
+    distinctiveness: float = math.nan
+    reason: str = ""
 
 
 def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int) -> dict:

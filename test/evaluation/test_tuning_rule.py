@@ -1,0 +1,89 @@
+"""The tuning rule over two suite runs: mean rises, no pair drops a point, no false closure."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mf_lpr_ros.cli import main
+from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.evaluation.tuning_rule import compare_runs, format_comparison
+
+METHOD = "MF-LPR (ours)"
+
+
+def _run(out: Path, figures: dict[str, tuple[float, float, float, int]],
+         matched: dict[str, list[int]] | None = None) -> Path:
+    """A suite output folder: per pair (recall@1, corrected, recall published, false closures)
+    and, optionally, the references its queries matched (query k lies 1 m from a reference,
+    except the last, 9 m away: not a positive at 5 m)."""
+    (out / "pairs").mkdir(parents=True)
+    rows = [{"pair": pair, "method": METHOD, "n_queries": 10, "recall_at_1": r1,
+             "recall_at_1_corrected": corrected, "recall_published": published,
+             "closures_published": 8, "closures_false": false}
+            for pair, (r1, corrected, published, false) in figures.items()]
+    rows.append({"pair": f"mean of {len(rows)} pairs", "method": METHOD, "recall_at_1": 0.0})
+    (out / "results.json").write_text(json.dumps({
+        "results": rows,
+        "pairs": [{"name": pair, "protocol": {"tolerance_m": 5.0}} for pair in figures]}))
+    for pair, references in (matched or {}).items():
+        records = [{"query_index": k, "stamp": float(k), "reference_index": reference,
+                    "nearest_reference_m": 9.0 if k == len(references) - 1 else 1.0}
+                   for k, reference in enumerate(references)]
+        (out / "pairs" / f"{pair}__mf-lpr.json").write_text(
+            json.dumps({"method": METHOD, "records": records}))
+    return out
+
+
+def test_a_change_that_raises_the_mean_without_drops_passes(tmp_path):
+    before = _run(tmp_path / "before", {"a": (0.90, 0.95, 0.50, 0), "b [x]": (0.80, 0.85, 0.3, 0)},
+                  {"b [x]": [1, 2, 3, 4]})
+    after = _run(tmp_path / "after", {"a": (0.92, 0.95, 0.55, 0), "b [x]": (0.795, 0.85, 0.3, 0)},
+                 {"b [x]": [1, 2, 9, 7]})
+    comparison = compare_runs(before, after)
+    assert comparison.passes
+    assert comparison.mean("after") > comparison.mean("before")
+    by_pair = {change.pair: change for change in comparison.changes}
+    # Queries 0-2 are positives (the last lies 9 m from every reference): 2 of 3 kept theirs.
+    assert by_pair["b [x]"].same_reference == pytest.approx(2 / 3)
+    assert by_pair["a"].drop("recall_at_1") == pytest.approx(-0.02)
+    table = format_comparison(comparison)
+    assert "| a | 10 | 0.900 → 0.920 |" in table and "passes the tuning rule" in table
+
+
+@pytest.mark.parametrize("after_b, why", [
+    ((0.78, 0.85, 0.30, 0), "b: recall_at_1 drops by 2.0 points"),
+    ((0.80, 0.85, 0.30, 1), "b: 1 false closure(s) added"),
+])
+def test_a_rising_mean_does_not_excuse_a_drop_or_a_false_closure(tmp_path, after_b, why):
+    before = _run(tmp_path / "before", {"a": (0.50, 0.50, 0.50, 0), "b": (0.80, 0.85, 0.30, 0)})
+    after = _run(tmp_path / "after", {"a": (0.90, 0.90, 0.90, 0), "b": after_b})
+    comparison = compare_runs(before, after)
+    assert comparison.mean("after") > comparison.mean("before")
+    assert not comparison.passes
+    assert why in format_comparison(comparison)
+
+
+def test_an_unchanged_suite_does_not_pass_and_missing_pairs_are_named(tmp_path):
+    figures = {"a": (0.9, 0.9, 0.5, 0)}
+    assert not compare_runs(_run(tmp_path / "same1", figures),
+                            _run(tmp_path / "same2", figures)).passes
+    comparison = compare_runs(_run(tmp_path / "before", figures),
+                              _run(tmp_path / "after", {**figures, "new": (1.0, 1.0, 1.0, 0)}))
+    assert comparison.only_after == [f"new ({METHOD})"] and not comparison.passes
+
+
+def test_the_command_checks_and_names_a_folder_that_is_not_a_run(tmp_path, capsys):
+    before = _run(tmp_path / "before", {"a": (0.9, 0.9, 0.5, 0)})
+    worse = _run(tmp_path / "worse", {"a": (0.8, 0.9, 0.5, 0)})
+    assert main(["suite-diff", str(before), str(worse)]) == 0
+    assert main(["suite-diff", str(before), str(worse), "--check"]) == 1
+    assert "does NOT pass" in capsys.readouterr().out
+    assert main(["suite-diff", str(before), str(tmp_path)]) == 2
+    assert "no results.json" in capsys.readouterr().err
+    with pytest.raises(DatasetError, match="not a suite's results.json"):
+        (tmp_path / "broken").mkdir()
+        (tmp_path / "broken" / "results.json").write_text("{")
+        compare_runs(before, tmp_path / "broken")
