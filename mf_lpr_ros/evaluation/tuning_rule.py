@@ -132,7 +132,8 @@ def format_comparison(comparison: RunComparison) -> str:
 
 
 def _rows(out: Path) -> dict[tuple[str, str], dict]:
-    """The per-pair rows of a suite's results.json, by (pair, method); means left out."""
+    """The per-pair rows of a suite's results.json, by (pair, method); left out: the means and
+    the papers' published figures printed beside them (no queries were evaluated for those)."""
     path = out / "results.json"
     try:
         rows = json.loads(path.read_text())["results"]
@@ -142,7 +143,8 @@ def _rows(out: Path) -> dict[tuple[str, str], dict]:
     except (json.JSONDecodeError, KeyError, TypeError) as error:
         raise DatasetError(f"{path}: not a suite's results.json ({error})") from None
     return {(row["pair"], row["method"]): row for row in rows
-            if not str(row["pair"]).startswith("mean of")}
+            if not str(row["pair"]).startswith("mean of")
+            and math.isfinite(float(row.get("n_evaluated", math.nan)))}
 
 
 def _same_reference(before: Path, after: Path, pair: str, method: str) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -20,11 +21,15 @@ def _run(out: Path, figures: dict[str, tuple[float, float, float, int]],
     and, optionally, the references its queries matched (query k lies 1 m from a reference,
     except the last, 9 m away: not a positive at 5 m)."""
     (out / "pairs").mkdir(parents=True)
-    rows = [{"pair": pair, "method": METHOD, "n_queries": 10, "recall_at_1": r1,
+    rows = [{"pair": pair, "method": METHOD, "n_queries": 10, "n_evaluated": 12, "recall_at_1": r1,
              "recall_at_1_corrected": corrected, "recall_published": published,
              "closures_published": 8, "closures_false": false}
             for pair, (r1, corrected, published, false) in figures.items()]
-    rows.append({"pair": f"mean of {len(rows)} pairs", "method": METHOD, "recall_at_1": 0.0})
+    # What the suite adds after the pairs: a paper's published figure and the means.
+    rows.append({"pair": next(iter(figures)), "method": "BEVPlace (published)",
+                 "n_evaluated": math.nan, "recall_at_1": 0.0})
+    rows.append({"pair": f"mean of {len(rows)} pairs", "method": METHOD, "n_evaluated": 12,
+                 "recall_at_1": 0.0})
     (out / "results.json").write_text(json.dumps({
         "results": rows,
         "pairs": [{"name": pair, "protocol": {"tolerance_m": 5.0}} for pair in figures]}))
@@ -51,6 +56,7 @@ def test_a_change_that_raises_the_mean_without_drops_passes(tmp_path):
     assert by_pair["a"].drop("recall_at_1") == pytest.approx(-0.02)
     table = format_comparison(comparison)
     assert "| a | 10 | 0.900 → 0.920 |" in table and "passes the tuning rule" in table
+    assert [change.method for change in comparison.changes] == [METHOD, METHOD]
 
 
 @pytest.mark.parametrize("after_b, why", [
