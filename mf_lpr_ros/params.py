@@ -188,6 +188,14 @@ class SearchParams:
     distinct_radius_m: references farther than this from the match count as another place
         when MatchResult.distinctiveness compares the match with the best other place.
     min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).
+    min_local_distinctiveness: a match under min_distinctiveness is distinct all the same when
+        its local_distinctiveness (the same comparison at the local stage's resolution,
+        MatchResult) reaches this (0 = off). Where the pooled descriptors of a block grid or a
+        straight road look alike, the full-resolution alignment still tells the places apart;
+        it is held to a larger margin because even a look-alike place differs in detail there.
+        0.3: of 0.2-0.4 on the whole tuning suite, the least at which no wrong match passes
+        the test by itself (a parallel street on KITTI 00 reaches 0.22-0.28); docs/RESULTS.md,
+        session 17.
     consistency_min_support, consistency_window_m, consistency_min_separation_m,
     consistency_tolerance_m, consistency_tolerance_deg: odometry consistency
         (mf_lpr_ros/core/verification.py). When consistency_min_support > 0 and the scans'
@@ -246,6 +254,7 @@ class SearchParams:
     verify_fitness: float = 0.0
     distinct_radius_m: float = 10.0
     min_distinctiveness: float = 0.15
+    min_local_distinctiveness: float = 0.3
     consistency_min_support: int = 2
     consistency_window_m: float = 30.0
     consistency_min_separation_m: float = 1.0
@@ -290,9 +299,9 @@ class SearchParams:
                  self.verify_fitness)
         require_parameter(self.distinct_radius_m > 0, "distinct_radius_m", "> 0",
                           self.distinct_radius_m)
-        require_parameter(0.0 <= self.min_distinctiveness <= 1.0, "min_distinctiveness",
-                          "in [0, 1]",
-                 self.min_distinctiveness)
+        for name in ("min_distinctiveness", "min_local_distinctiveness"):
+            require_parameter(0.0 <= getattr(self, name) <= 1.0, name, "in [0, 1]",
+                              getattr(self, name))
         require_parameter(self.consistency_min_support >= 0, "consistency_min_support", ">= 0",
                  self.consistency_min_support)
         for name in ("consistency_window_m", "consistency_tolerance_m",

@@ -75,6 +75,12 @@ class MatchResult:
         SearchParams.distinct_radius_m from the match) / (the match's global score), in [0, 1];
         near 0 when another place scores as well (a look-alike), and 0 when no other place
         was searched (nothing to tell the match apart from).
+    local_distinctiveness: the same comparison at the local stage's resolution: 1 - (local
+        score of the best other place: the best-scoring reference of the global stage farther
+        than distinct_radius_m, aligned as a finalist is, or a finalist that far if it scores
+        higher) / (the match's local score). Computed only where verification asks for it
+        (SearchParams.min_local_distinctiveness > 0 and distinctiveness under
+        min_distinctiveness); NaN otherwise.
     candidates: reference indices by rank (the match first, then the global ranking).
     hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
         re-ranking aligned it), the match first, the others by local score, each with the
@@ -91,6 +97,7 @@ class MatchResult:
     relative_covariance: np.ndarray
     candidates: np.ndarray
     distinctiveness: float = 1.0
+    local_distinctiveness: float = math.nan
     hypotheses: list[Hypothesis] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -275,22 +282,32 @@ class MatchedFilterIndex:
         ranked = searched[order]
         global_done = time.perf_counter()
 
-        finalists = order[: self.search.top_n]
-        located = (self.bank.peaks(volume, finalists) if volume is not None
-                   else self.bank.locate(prepared, columns[finalists],
-                                         None if allowed is None else allowed[finalists]))
-        peaks = [self._local(occupancy, int(reference),
-                             self.global_angles[headings[int(query_index)]])
-                 for reference, (query_index, *_) in zip(searched[finalists], located)]
+        def local_peaks(positions: np.ndarray) -> list[_LocalPeak]:
+            """The local stage on searched[positions], each at its global heading."""
+            located = (self.bank.peaks(volume, positions) if volume is not None
+                       else self.bank.locate(prepared, columns[positions],
+                                             None if allowed is None else allowed[positions]))
+            return [self._local(occupancy, int(reference),
+                                self.global_angles[headings[int(query_index)]])
+                    for reference, (query_index, *_) in zip(searched[positions], located)]
+
+        peaks = local_peaks(order[: self.search.top_n])
         peaks.sort(key=lambda peak: -peak.score)
         result = self._result(peaks[0], ranked)
-        distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference)
+        elsewhere = self._elsewhere(searched, peaks[0].reference)
+        distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference, elsewhere)
+        local_distinctiveness = math.nan
+        if (self.search.min_local_distinctiveness > 0
+                and distinctiveness < self.search.min_distinctiveness):
+            local_distinctiveness = self._local_distinctiveness(searched, scores, elsewhere,
+                                                                peaks, local_peaks)
         nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, columns,
                                      prepared, headings, volume, n_refs)
         if nearer is not None:
             peak, result = nearer
             peaks = [peak] + [other for other in peaks if other is not peak]
         result.distinctiveness = distinctiveness
+        result.local_distinctiveness = local_distinctiveness
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
         for peak in peaks[1:]:
@@ -359,18 +376,38 @@ class MatchedFilterIndex:
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
         return float(self.global_angles[index])
 
-    def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int) -> float:
+    def _elsewhere(self, searched: np.ndarray, reference: int) -> np.ndarray:
+        """Positions in searched of the references farther than distinct_radius_m from
+        reference: another place."""
+        offsets = self.map.poses[searched, :2, 3] - self.map.poses[reference, :2, 3]
+        return np.flatnonzero(np.einsum("nc,nc->n", offsets, offsets)
+                              > self.search.distinct_radius_m ** 2)
+
+    def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int,
+                         elsewhere: np.ndarray) -> float:
         """1 - (best global score among references farther than distinct_radius_m from
         reference) / (reference's global score); see MatchResult."""
         own = scores[searched == reference]
-        if not len(own) or own[0] <= 0:
-            return 0.0
-        positions = self.map.poses[searched, :2, 3]
-        offsets = positions - self.map.poses[reference, :2, 3]
-        elsewhere = np.einsum("nc,nc->n", offsets, offsets) > self.search.distinct_radius_m ** 2
-        if not elsewhere.any():
+        if not len(own) or own[0] <= 0 or not len(elsewhere):
             return 0.0
         return float(np.clip(1.0 - scores[elsewhere].max() / own[0], 0.0, 1.0))
+
+    def _local_distinctiveness(self, searched: np.ndarray, scores: np.ndarray,
+                               elsewhere: np.ndarray, peaks: list["_LocalPeak"],
+                               local_peaks: Callable[[np.ndarray], list["_LocalPeak"]]
+                               ) -> float:
+        """MatchResult.local_distinctiveness. At the global stage's resolution a straight
+        street or a block grid looks alike all along; at the local stage's, what the match
+        was decided on tells the places apart (docs/RESULTS.md, session 17)."""
+        match = peaks[0]
+        if match.score <= 0 or not len(elsewhere):
+            return 0.0
+        rival = elsewhere[np.argmax(scores[elsewhere])]
+        other_places = set(searched[elsewhere].tolist())
+        aligned = [peak.score for peak in peaks[1:] if peak.reference in other_places]
+        if int(searched[rival]) not in {peak.reference for peak in peaks}:
+            aligned += [peak.score for peak in local_peaks(np.array([rival]))]
+        return float(np.clip(1.0 - max(aligned) / match.score, 0.0, 1.0))
 
     def candidates(self, occupancy: np.ndarray, top_k: int, n_active: int | None = None
                    ) -> np.ndarray:

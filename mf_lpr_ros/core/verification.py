@@ -5,7 +5,9 @@ and `evaluate`.
 A match is published when, in this order (cheap tests first, each only on what passed before):
 1. its confidence reaches search.min_confidence and its score min_score;
 2. its distinctiveness (best place vs the best other place, MatchResult.distinctiveness)
-   reaches search.min_distinctiveness: a look-alike place scores nearly as well;
+   reaches search.min_distinctiveness, or the same comparison at the local stage's
+   resolution (local_distinctiveness) reaches search.min_local_distinctiveness: a look-alike
+   place scores nearly as well;
 3. geometric verification, where clouds exist and search.verify_fitness > 0: ICP fitness
    against the reference's stored cloud;
 4. odometry consistency, where the scans' odometry is known and
@@ -128,6 +130,14 @@ class OdometryConsistency:
         return count, confirmed
 
 
+def distinct(match: MatchResult, search: SearchParams) -> bool:
+    """The distinctiveness test: at the global stage's resolution, or else at the local
+    stage's (SearchParams.min_local_distinctiveness; a NaN local figure fails)."""
+    return (match.distinctiveness >= search.min_distinctiveness
+            or (search.min_local_distinctiveness > 0
+                and match.local_distinctiveness >= search.min_local_distinctiveness))
+
+
 class MatchVerifier:
     """Applies the tests of the module doc to a stream of matches, in query time order.
 
@@ -167,9 +177,12 @@ class MatchVerifier:
                            f"{search.min_confidence}")
         if match.score < self.min_score:
             reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
-        if match.distinctiveness < search.min_distinctiveness:
+        if not distinct(match, search):
             reasons.append(f"distinctiveness {match.distinctiveness:.3f} < min_distinctiveness "
-                           f"{search.min_distinctiveness}")
+                           f"{search.min_distinctiveness}"
+                           + (f" and local {match.local_distinctiveness:.3f} < "
+                              f"min_local_distinctiveness {search.min_local_distinctiveness}"
+                              if search.min_local_distinctiveness > 0 else ""))
         if reasons:
             return Verdict(False, "; ".join(reasons))
         fitness = math.nan

@@ -51,11 +51,76 @@ def test_a_planted_look_alike_place_is_rejected(world):
             assert match.distinctiveness > 0.3
 
 
-def _match(pose, confidence=0.8, distinctiveness=0.8) -> MatchResult:
+def _swapped_within_pooling_blocks(occupancy: np.ndarray) -> np.ndarray:
+    """Each cell moved to the opposite corner of its 2 x 2 pooling block: the same global-stage
+    descriptor (the block averages), another one at full resolution."""
+    size = occupancy.shape[0]
+    blocks = occupancy.reshape(size // 2, 2, size // 2, 2)
+    return np.ascontiguousarray(blocks[:, ::-1, :, ::-1]).reshape(size, size)
+
+
+def test_a_place_alike_only_when_pooled_is_told_apart_at_full_resolution(world):
+    """A look-alike that only the pooled descriptor confuses fails the global test
+    (distinctiveness 0) and passes at the local stage's resolution when that test is on; an
+    exact copy fails both."""
+    rng = np.random.default_rng(0)
+    points, pose = scan_world(world, *PLACES[0], rng)
+    place = describe_points(points, PARAMS, reference=True, seed_key=0)
+    query_points, _ = scan_world(world, 0.8, -0.5, 0.2, np.random.default_rng(5))
+    query = describe_points(query_points, PARAMS)
+    elsewhere = pose.copy()
+    elsewhere[:2, 3] += [40.0, 40.0]
+    outcomes = {}
+    for kind, look_alike in (("pooled", _swapped_within_pooling_blocks(place)),
+                             ("copy", place.copy())):
+        reference_map = _map(world, look_alike=False)
+        reference_map.append(look_alike, elsewhere, 9.0, 99)
+        for min_local in (0.0, 0.3):
+            search = SearchParams(min_confidence=0.3, consistency_min_support=0,
+                                  min_local_distinctiveness=min_local)
+            match = MatchedFilterIndex(reference_map, search).query(query)
+            assert match.reference_index == 0 and match.distinctiveness < 0.02
+            verdict = MatchVerifier(search, odometry_known=False).verify(match)
+            outcomes[kind, min_local] = (verdict.accepted, match.local_distinctiveness)
+            if not verdict.accepted:
+                assert "distinctiveness" in verdict.reason
+    assert not outcomes["pooled", 0.0][0] and math.isnan(outcomes["pooled", 0.0][1])
+    assert outcomes["pooled", 0.3][0] and outcomes["pooled", 0.3][1] >= 0.3
+    assert not outcomes["copy", 0.3][0] and outcomes["copy", 0.3][1] < 0.05
+
+
+def test_local_distinctiveness_is_only_computed_when_the_global_test_fails(world):
+    search = SearchParams(min_confidence=0.3, consistency_min_support=0,
+                          min_local_distinctiveness=0.3)
+    points, _ = scan_world(world, 0.8, -0.5, 0.2, np.random.default_rng(5))
+    match = MatchedFilterIndex(_map(world, False), search).query(describe_points(points, PARAMS))
+    assert match.distinctiveness >= search.min_distinctiveness
+    assert math.isnan(match.local_distinctiveness)
+
+
+def _match(pose, confidence=0.8, distinctiveness=0.8,
+           local_distinctiveness=math.nan) -> MatchResult:
     return MatchResult(reference_index=0, score=1.0, confidence=confidence,
                        shift_m=np.zeros(2), rotation_rad=0.0, pose=np.asarray(pose, float),
                        covariance=np.eye(3), relative_covariance=np.eye(3),
-                       candidates=np.zeros(1, int), distinctiveness=distinctiveness)
+                       candidates=np.zeros(1, int), distinctiveness=distinctiveness,
+                       local_distinctiveness=local_distinctiveness)
+
+
+@pytest.mark.parametrize("min_local, local, accepted", [
+    (0.0, 0.9, False), (0.3, 0.9, True), (0.3, 0.29, False), (0.3, math.nan, False)])
+def test_the_local_test_admits_only_what_the_global_test_refused(min_local, local, accepted):
+    search = SearchParams(min_distinctiveness=0.15, min_local_distinctiveness=min_local,
+                          consistency_min_support=0)
+    verifier = MatchVerifier(search, odometry_known=False)
+    verdict = verifier.verify(_match(np.zeros(3), distinctiveness=0.1,
+                                     local_distinctiveness=local))
+    assert verdict.accepted is accepted
+    if not accepted:
+        assert "distinctiveness 0.100 < min_distinctiveness" in verdict.reason
+        assert ("local" in verdict.reason) is (min_local > 0)
+    assert verifier.verify(_match(np.zeros(3), distinctiveness=0.2,
+                                  local_distinctiveness=0.0)).accepted
 
 
 def _drive(n: int, step_m: float = 1.5) -> np.ndarray:
