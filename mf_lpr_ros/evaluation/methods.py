@@ -46,6 +46,7 @@ class Retrieval:
     published: bool = False
     confirms: list[int] = field(default_factory=list)
     distinctiveness: float = math.nan
+    local_distinctiveness: float = math.nan
     reason: str = ""
 
 
@@ -89,7 +90,8 @@ class MatchedFilterMethod:
         self._queries += 1
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
-                         verdict.confirms, match.distinctiveness, verdict.reason)
+                         verdict.confirms, match.distinctiveness, match.local_distinctiveness,
+                         verdict.reason)
 
 
 class ScanContextMethod:

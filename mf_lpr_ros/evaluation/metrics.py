@@ -22,9 +22,10 @@ class QueryRecord:
     within tolerance); retrieved_distance_m, candidate_distances_m: the matched reference and
     the best RECALL_AT_N candidates. rte_m, rre_deg: the estimate's pose error. published:
     the method would publish the match as a loop closure. ms_*: time per stage.
-    distinctiveness, reason: MF-LPR's MatchResult.distinctiveness and the verification's
-    reason for the verdict (NaN and "" for methods without them): why a revisit was not
-    published can be read off a run.
+    distinctiveness, local_distinctiveness, reason: MF-LPR's MatchResult figures and the
+    verification's reason for the verdict (NaN and "" for methods without them; the local
+    figure is NaN where it was not needed): why a revisit was not published can be read off
+    a run.
     """
 
     query_index: int
@@ -43,6 +44,7 @@ class QueryRecord:
     ms_global: float
     ms_local: float
     distinctiveness: float = math.nan
+    local_distinctiveness: float = math.nan
     reason: str = ""
 
 

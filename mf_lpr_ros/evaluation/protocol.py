@@ -201,6 +201,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             ms_global=retrieval.ms_global,
             ms_local=retrieval.ms_local,
             distinctiveness=float(retrieval.distinctiveness),
+            local_distinctiveness=float(retrieval.local_distinctiveness),
             reason=retrieval.reason))
         for earlier in retrieval.confirms:
             records[earlier].published = True

@@ -144,3 +144,26 @@ def test_map_closures_baseline_runs_or_is_refused_by_name(tmp_path):
     assert (retrieval.reference, retrieval.confidence) == (0, 40.0)
     assert method.query(cloud, n_active=3, odometry=np.zeros(3)).reference == 2
     assert asked == [3, 4]                      # queries get fresh ids after the references
+
+
+def test_each_record_says_why_its_match_was_or_was_not_published(tmp_path, world):
+    from mf_lpr_ros.config import preset
+    from mf_lpr_ros.datasets import open_source
+    from mf_lpr_ros.evaluation.protocol import evaluate_pair
+    from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
+
+    write_kitti_sequence(tmp_path / "first", world, route(40), seed=1)
+    write_kitti_sequence(tmp_path / "second", world, route(16, lateral_offset_m=1.0), seed=2)
+    config = preset("kitti")
+    result = evaluate_pair(open_source(tmp_path / "first"), config, Protocol(5.0),
+                           query=open_source(tmp_path / "second"), progress=False)
+    records = result.records
+    assert len(records) == 16 and any(record.published for record in records)
+    for record in records:
+        assert record.reason.startswith("accepted") is record.published, record.reason
+        assert 0.0 <= record.distinctiveness <= 1.0
+        # The full-resolution figure is taken only where the pooled one falls short.
+        needed = record.distinctiveness < config.search.min_distinctiveness
+        assert bool(np.isfinite(record.local_distinctiveness)) is needed
+        if not record.published and needed and record.local_distinctiveness < 0.3:
+            assert "local" in record.reason
