@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import Config, config_from_dict, preset
-from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, auto_descriptor, measure_sensor
+from mf_lpr_ros.core.auto_params import (
+    SAMPLE_SCANS,
+    SensorProfile,
+    auto_config,
+    auto_descriptor,
+    measure_sensor,
+)
 from mf_lpr_ros.core.descriptor import voxel_size_for_density
 from mf_lpr_ros.core.pose import pose_matrix
 from mf_lpr_ros.datasets import open_source
@@ -40,11 +46,12 @@ def test_the_height_floor_follows_the_mount_and_nothing_is_cut_above(world, lift
     assert profile.horizontal_fov_deg == 360.0
 
 
-def test_voxel_size_follows_the_papers_rule_capped_by_the_sensors_reach(world):
+def test_voxel_size_follows_the_papers_rule_held_between_what_the_sensor_sees(world):
     clouds = _scans(world)
     profile = measure_sensor(clouds)
     params = auto_descriptor(profile, DescriptorParams())
-    expected = min(voxel_size_for_density(profile.occupied_voxels),
+    expected = min(max(voxel_size_for_density(profile.occupied_voxels),
+                       2 * profile.range_held_m / params.size),
                    2 * profile.range_p95_m / params.size)
     assert params.voxel_size == pytest.approx(expected, abs=0.005)
     # Scans seeing half as far get a window half as wide at most.
@@ -53,6 +60,24 @@ def test_voxel_size_follows_the_papers_rule_capped_by_the_sensors_reach(world):
     # The paper's three points: denser scans, smaller voxels.
     assert voxel_size_for_density(1360) == pytest.approx(0.3, abs=0.05)
     assert voxel_size_for_density(275) == pytest.approx(1.3, abs=0.05)
+
+
+def test_a_dense_sensor_seeing_far_keeps_a_window_holding_most_of_its_returns():
+    """The paper's rule gives any scan over ~1360 occupied voxels 0.3 m (a 36 m window): a
+    town seen to 60 m keeps a window holding the nearer 75 % of its returns; a forest's short
+    sight lines keep the rule's voxel."""
+    def profile(held_m: float, occupied: float = 2700.0, p95_m: float = 60.0) -> SensorProfile:
+        return SensorProfile(n_scans=12, occupied_voxels=occupied, returns_per_voxel=4.5,
+                             ground_below_sensor_m=1.7, horizontal_fov_deg=360.0,
+                             heading_deg=0.0, tilt_spread_deg=0.5, range_p95_m=p95_m,
+                             range_held_m=held_m)
+
+    town = auto_descriptor(profile(26.4), DescriptorParams())
+    assert town.voxel_size == pytest.approx(0.44) and town.extent_m >= 2 * 26.4 - 0.5
+    assert auto_descriptor(profile(8.0), DescriptorParams()).voxel_size == pytest.approx(0.3)
+    # Never past the sensor's reach, however large the rule's voxel for a sparse scan.
+    assert auto_descriptor(profile(15.0, occupied=300.0, p95_m=20.0),
+                           DescriptorParams()).voxel_size == pytest.approx(0.33)
 
 
 def test_field_of_view_and_tilt_are_measured(world):

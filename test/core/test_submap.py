@@ -166,7 +166,7 @@ def test_single_scans_when_the_window_is_off_or_there_is_no_odometry():
 def _profile(fov: float, returns_per_voxel: float) -> SensorProfile:
     return SensorProfile(n_scans=12, occupied_voxels=900.0, returns_per_voxel=returns_per_voxel,
                          ground_below_sensor_m=1.0, horizontal_fov_deg=fov, heading_deg=0.0,
-                         tilt_spread_deg=0.5, range_p95_m=40.0)
+                         tilt_spread_deg=0.5, range_p95_m=40.0, range_held_m=20.0)
 
 
 def test_auto_gives_narrow_and_sparse_sensors_submaps_and_dense_ones_single_scans():
