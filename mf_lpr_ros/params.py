@@ -188,6 +188,12 @@ class SearchParams:
     distinct_radius_m: references farther than this from the match count as another place
         when MatchResult.distinctiveness compares the match with the best other place.
     min_distinctiveness: accept a match only when its distinctiveness reaches this (0 = off).
+    distinct_aligned_rivals: for a match that passes confidence and would fail
+        min_distinctiveness, up to this many of the best-scoring references farther than
+        distinct_radius_m are aligned (best first, until one disagrees); one whose alignment
+        puts the query within rerank_agreement_m of the match's pose sees the query's own
+        place from farther along the road, the same answer, and is not the other place
+        distinctiveness compares with (0 = off). 3: docs/RESULTS.md, session 17.
     min_local_distinctiveness: a match under min_distinctiveness is distinct all the same when
         its local_distinctiveness (the same comparison at the local stage's resolution,
         MatchResult) reaches this (0 = off). Where the pooled descriptors of a block grid or a
@@ -254,6 +260,7 @@ class SearchParams:
     verify_fitness: float = 0.0
     distinct_radius_m: float = 10.0
     min_distinctiveness: float = 0.15
+    distinct_aligned_rivals: int = 3
     min_local_distinctiveness: float = 0.3
     consistency_min_support: int = 2
     consistency_window_m: float = 30.0
@@ -299,6 +306,8 @@ class SearchParams:
                  self.verify_fitness)
         require_parameter(self.distinct_radius_m > 0, "distinct_radius_m", "> 0",
                           self.distinct_radius_m)
+        require_parameter(self.distinct_aligned_rivals >= 0, "distinct_aligned_rivals", ">= 0",
+                          self.distinct_aligned_rivals)
         for name in ("min_distinctiveness", "min_local_distinctiveness"):
             require_parameter(0.0 <= getattr(self, name) <= 1.0, name, "in [0, 1]",
                               getattr(self, name))

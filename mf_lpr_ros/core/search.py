@@ -71,16 +71,18 @@ class MatchResult:
     covariance / relative_covariance: 3x3 over (x, y, yaw) in the map / reference frame.
     score: local peak score, normalised as SearchParams.score_normalisation says.
     confidence: cosine similarity of query and reference at the best alignment, in [0, 1].
-    distinctiveness: 1 - (best global score of a reference farther than
-        SearchParams.distinct_radius_m from the match) / (the match's global score), in [0, 1];
-        near 0 when another place scores as well (a look-alike), and 0 when no other place
-        was searched (nothing to tell the match apart from).
+    distinctiveness: 1 - (best global score of another place) / (the match's global score),
+        in [0, 1]; near 0 when another place scores as well (a look-alike), and 0 when no
+        other place was searched (nothing to tell the match apart from). Another place: a
+        reference farther than SearchParams.distinct_radius_m from the match's, except, for a
+        match that passes min_confidence and would fail min_distinctiveness, the best of
+        those (up to distinct_aligned_rivals) whose own alignment puts the query where the
+        match does (within rerank_agreement_m): the same answer seen from farther away.
     local_distinctiveness: the same comparison at the local stage's resolution: 1 - (local
-        score of the best other place: the best-scoring reference of the global stage farther
-        than distinct_radius_m, aligned as a finalist is, or a finalist that far if it scores
-        higher) / (the match's local score). Computed only where verification asks for it
-        (SearchParams.min_local_distinctiveness > 0 and distinctiveness under
-        min_distinctiveness); NaN otherwise.
+        score of the best other place: the best-scoring one of the global stage, aligned as
+        a finalist is, or another place aligned already that scored higher) / (the match's
+        local score). Computed only where verification asks for it (min_local_distinctiveness
+        > 0, confidence passes and distinctiveness does not); NaN otherwise.
     candidates: reference indices by rank (the match first, then the global ranking).
     hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
         re-ranking aligned it), the match first, the others by local score, each with the
@@ -293,21 +295,26 @@ class MatchedFilterIndex:
 
         peaks = local_peaks(order[: self.search.top_n])
         peaks.sort(key=lambda peak: -peak.score)
+        finalists = peaks
         result = self._result(peaks[0], ranked)
-        elsewhere = self._elsewhere(searched, peaks[0].reference)
-        distinctiveness = self._distinctiveness(searched, scores, peaks[0].reference, elsewhere)
-        local_distinctiveness = math.nan
-        if (self.search.min_local_distinctiveness > 0
-                and distinctiveness < self.search.min_distinctiveness):
-            local_distinctiveness = self._local_distinctiveness(searched, scores, elsewhere,
-                                                                peaks, local_peaks)
         nearer = self._nearest_place(occupancy, result, peaks, ranked, searched, columns,
                                      prepared, headings, volume, n_refs)
+        match_pose = result.pose
         if nearer is not None:
             peak, result = nearer
             peaks = [peak] + [other for other in peaks if other is not peak]
-        result.distinctiveness = distinctiveness
-        result.local_distinctiveness = local_distinctiveness
+        aligned = {peak.reference: peak for peak in peaks}
+
+        def align(position: int) -> _LocalPeak:
+            """searched[position] through the local stage, once per query."""
+            reference = int(searched[position])
+            if reference not in aligned:
+                aligned[reference] = local_peaks(np.array([position]))[0]
+            return aligned[reference]
+
+        result.distinctiveness, result.local_distinctiveness = self._distinctiveness_tests(
+            searched, scores, finalists[0], match_pose, result.confidence, ranked, align,
+            aligned)
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
         for peak in peaks[1:]:
@@ -383,31 +390,70 @@ class MatchedFilterIndex:
         return np.flatnonzero(np.einsum("nc,nc->n", offsets, offsets)
                               > self.search.distinct_radius_m ** 2)
 
+    def _distinctiveness_tests(self, searched: np.ndarray, scores: np.ndarray,
+                               match: "_LocalPeak", match_pose: np.ndarray, confidence: float,
+                               ranked: np.ndarray, align: Callable[[int], "_LocalPeak"],
+                               aligned: dict[int, "_LocalPeak"]) -> tuple[float, float]:
+        """(distinctiveness, local_distinctiveness) of the match (see MatchResult). The
+        alignments that refine them are made only for a match that passes confidence and
+        would fail distinctiveness: elsewhere it changes nothing that is published."""
+        elsewhere = self._elsewhere(searched, match.reference)
+        distinctiveness = self._distinctiveness(searched, scores, match.reference, elsewhere)
+        search = self.search
+        if distinctiveness >= search.min_distinctiveness or confidence < search.min_confidence:
+            return distinctiveness, math.nan
+        if search.distinct_aligned_rivals > 0:
+            elsewhere = self._other_answers(searched, scores, elsewhere, match_pose, ranked,
+                                            align)
+            distinctiveness = self._distinctiveness(searched, scores, match.reference,
+                                                    elsewhere)
+        if distinctiveness >= search.min_distinctiveness or search.min_local_distinctiveness <= 0:
+            return distinctiveness, math.nan
+        return distinctiveness, self._local_distinctiveness(searched, scores, elsewhere, match,
+                                                            align, aligned)
+
     def _distinctiveness(self, searched: np.ndarray, scores: np.ndarray, reference: int,
                          elsewhere: np.ndarray) -> float:
-        """1 - (best global score among references farther than distinct_radius_m from
-        reference) / (reference's global score); see MatchResult."""
+        """1 - (best global score among the positions elsewhere) / (reference's global
+        score)."""
         own = scores[searched == reference]
         if not len(own) or own[0] <= 0 or not len(elsewhere):
             return 0.0
         return float(np.clip(1.0 - scores[elsewhere].max() / own[0], 0.0, 1.0))
 
+    def _other_answers(self, searched: np.ndarray, scores: np.ndarray, elsewhere: np.ndarray,
+                       match_pose: np.ndarray, ranked: np.ndarray,
+                       align: Callable[[int], "_LocalPeak"]) -> np.ndarray:
+        """elsewhere less its best-scoring references (up to distinct_aligned_rivals, best
+        first, until one disagrees) whose own alignment puts the query within
+        rerank_agreement_m of the match's pose: a reference farther along the same road that
+        sees the query's place gives the same answer, not a look-alike's."""
+        best_first = elsewhere[np.argsort(-scores[elsewhere], kind="stable")]
+        same = []
+        for position in best_first[: self.search.distinct_aligned_rivals]:
+            implied = self._result(align(int(position)), ranked).pose
+            if np.hypot(*(implied[:2] - match_pose[:2])) > self.search.rerank_agreement_m:
+                break
+            same.append(position)
+        return np.setdiff1d(elsewhere, same) if same else elsewhere
+
     def _local_distinctiveness(self, searched: np.ndarray, scores: np.ndarray,
-                               elsewhere: np.ndarray, peaks: list["_LocalPeak"],
-                               local_peaks: Callable[[np.ndarray], list["_LocalPeak"]]
-                               ) -> float:
-        """MatchResult.local_distinctiveness. At the global stage's resolution a straight
-        street or a block grid looks alike all along; at the local stage's, what the match
-        was decided on tells the places apart (docs/RESULTS.md, session 17)."""
-        match = peaks[0]
+                               elsewhere: np.ndarray, match: "_LocalPeak",
+                               align: Callable[[int], "_LocalPeak"],
+                               aligned: dict[int, "_LocalPeak"]) -> float:
+        """1 - (local score of the best other place: the best-scoring position elsewhere, or
+        any reference elsewhere aligned already, a finalist say, that scored higher) / (the
+        match's local score). At the global
+        stage's resolution a straight street or a block grid looks alike all along; at the
+        local stage's, what the match was decided on tells the places apart
+        (docs/RESULTS.md, session 17)."""
         if match.score <= 0 or not len(elsewhere):
             return 0.0
-        rival = elsewhere[np.argmax(scores[elsewhere])]
+        align(int(elsewhere[np.argmax(scores[elsewhere])]))
         other_places = set(searched[elsewhere].tolist())
-        aligned = [peak.score for peak in peaks[1:] if peak.reference in other_places]
-        if int(searched[rival]) not in {peak.reference for peak in peaks}:
-            aligned += [peak.score for peak in local_peaks(np.array([rival]))]
-        return float(np.clip(1.0 - max(aligned) / match.score, 0.0, 1.0))
+        best_other = max(peak.score for reference, peak in aligned.items()
+                         if reference in other_places)
+        return float(np.clip(1.0 - best_other / match.score, 0.0, 1.0))
 
     def candidates(self, occupancy: np.ndarray, top_k: int, n_active: int | None = None
                    ) -> np.ndarray:

@@ -247,3 +247,29 @@ def test_consistency_without_odometry_is_refused_or_skipped():
     skipped = MatchVerifier(search, odometry_known=False)
     assert not skipped.consistency_active
     assert skipped.verify(_match(np.zeros(3)), None).accepted
+
+
+def test_a_reference_farther_along_that_puts_the_query_where_the_match_does_is_no_rival(world):
+    """Between two references 11 m apart (farther than distinct_radius_m) a query sees the
+    same place from both: both align it to one pose. The farther one is the same answer, not
+    a look-alike; counted as the other place, it made the match indistinct."""
+    rng = np.random.default_rng(0)
+    reference_map = ReferenceMap(PARAMS)
+    for index, place in enumerate([(0.0, 0.0, 0.0), (11.0, 0.0, 0.0), (0.0, 25.0, -2.0),
+                                   (-25.0, -10.0, 2.5)]):
+        points, pose = scan_world(world, *place, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=index),
+                             pose, float(index), index)
+    points, truth = scan_world(world, 5.5, 0.4, 0.05, np.random.default_rng(7))
+    query = describe_points(points, PARAMS)
+    outcomes = {}
+    for rivals in (0, 3):
+        search = SearchParams(min_confidence=0.3, consistency_min_support=0,
+                              min_local_distinctiveness=0.0, distinct_aligned_rivals=rivals)
+        match = MatchedFilterIndex(reference_map, search).query(query)
+        assert match.reference_index in (0, 1)
+        assert np.hypot(*(match.pose[:2] - truth[:2, 3])) < 0.5
+        verdict = MatchVerifier(search, odometry_known=False).verify(match)
+        outcomes[rivals] = (verdict.accepted, match.distinctiveness)
+    assert outcomes[0][0] is False and outcomes[0][1] < 0.15
+    assert outcomes[3][0] is True and outcomes[3][1] >= 0.15

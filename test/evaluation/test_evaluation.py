@@ -162,8 +162,10 @@ def test_each_record_says_why_its_match_was_or_was_not_published(tmp_path, world
     for record in records:
         assert record.reason.startswith("accepted") is record.published, record.reason
         assert 0.0 <= record.distinctiveness <= 1.0
-        # The full-resolution figure is taken only where the pooled one falls short.
-        needed = record.distinctiveness < config.search.min_distinctiveness
+        # The full-resolution figure is taken only where the pooled one falls short of a
+        # match that passes confidence.
+        needed = (record.distinctiveness < config.search.min_distinctiveness
+                  and record.confidence >= config.search.min_confidence)
         assert bool(np.isfinite(record.local_distinctiveness)) is needed
         if not record.published and needed and record.local_distinctiveness < 0.3:
             assert "local" in record.reason
