@@ -443,10 +443,9 @@ class MatchedFilterIndex:
                                aligned: dict[int, "_LocalPeak"]) -> float:
         """1 - (local score of the best other place: the best-scoring position elsewhere, or
         any reference elsewhere aligned already, a finalist say, that scored higher) / (the
-        match's local score). At the global
-        stage's resolution a straight street or a block grid looks alike all along; at the
-        local stage's, what the match was decided on tells the places apart
-        (docs/RESULTS.md, session 17)."""
+        match's local score). At the global stage's resolution a straight street or a block
+        grid looks alike all along; at the local stage's, what the match was decided on tells
+        the places apart (docs/RESULTS.md, session 17)."""
         if match.score <= 0 or not len(elsewhere):
             return 0.0
         align(int(elsewhere[np.argmax(scores[elsewhere])]))
