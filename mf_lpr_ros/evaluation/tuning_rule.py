@@ -149,16 +149,16 @@ def _rows(out: Path) -> dict[tuple[str, str], dict]:
 
 def _same_reference(before: Path, after: Path, pair: str, method: str) -> float:
     """The share of positive queries matched to the same reference in both runs."""
-    records = []
+    records, tolerance = [], math.inf
     for out in (before, after):
         saved = next((run for run in map(_read_json, sorted(
             (out / "pairs").glob(f"{_glob_escape(pair)}__*.json")))
             if run.get("method") == method), None)
         if saved is None:
             return math.nan
+        tolerance = float(saved["summary"]["tolerance_m"])
         records.append({(record["query_index"], record["stamp"]): record
                         for record in saved["records"]})
-    tolerance = _tolerance(before, pair)
     positives = [key for key, record in records[0].items()
                  if record["nearest_reference_m"] <= tolerance and key in records[1]]
     if not positives:
@@ -174,12 +174,6 @@ def _read_json(path: Path) -> dict:
 def _nanmean(values: list[float]) -> float:
     finite = [value for value in values if math.isfinite(value)]
     return float(np.mean(finite)) if finite else math.nan
-
-
-def _tolerance(out: Path, pair: str) -> float:
-    pairs = json.loads((out / "results.json").read_text()).get("pairs", [])
-    protocol = next((entry["protocol"] for entry in pairs if entry["name"] == pair), {})
-    return float(protocol.get("tolerance_m", math.inf))
 
 
 def _glob_escape(name: str) -> str:
