@@ -18,7 +18,7 @@ setup(
     ],
     # Must agree with package.xml and mf_lpr_ros/optional.py (test_optional.py checks).
     install_requires=["setuptools", "numpy", "scipy", "pyyaml", "tqdm", "rosbags", "matplotlib",
-                      "pillow", "open3d-cpu"],
+                      "pillow", "open3d-cpu", "threadpoolctl"],
     extras_require={"gpu": ["torch"], "slam": ["gtsam"], "distributed": ["dask[distributed]"],
                     "baselines": ["map-closures"], "compressed_pcd": ["python-neo-lzf"],
                     "test": ["pytest", "hypothesis", "ruff"]},

@@ -31,6 +31,8 @@ class OptionalDependency:
 DEPENDENCIES = {dependency.module: dependency for dependency in (
     OptionalDependency("open3d", "ICP refinement and verification (search.verify_fitness, --icp)",
                        "open3d-cpu"),
+    OptionalDependency("threadpoolctl", "a search on several threads (search.threads)",
+                       "threadpoolctl"),
     OptionalDependency("torch", "the torch search backend (search.backend torch)", "torch",
                        "gpu"),
     OptionalDependency("gtsam", "the pose graph (slam-eval, the pose_graph node)", "gtsam",

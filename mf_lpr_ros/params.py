@@ -175,6 +175,13 @@ class SearchParams:
     backend: where the search's array work runs. "numpy" (CPU); "torch" (PyTorch: the CUDA
         GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
         PyTorch is installed and sees a CUDA device, else numpy.
+    threads: threads that share one query's work (numpy backend; torch has its own): the
+        global stage's per-heading products (each too small for BLAS's own threads), its large
+        products split by columns, and the local stage's finalists; numpy and scipy's FFTs
+        release the GIL. While a search runs on several threads BLAS is held to one thread in
+        the process (core/workers.py says why). 2 on 2 cores: 1,500 generated references 12.4
+        -> 11.1 ms a query (benchmarks/bench_search.py; docs/RESULTS.md, session 18). 1 keeps
+        the search on the calling thread (a process running several searches at once).
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
@@ -257,6 +264,7 @@ class SearchParams:
     prefilter_expand_m: float = 6.0
     reference_spectra: str = "auto"
     backend: str = "auto"
+    threads: int = 2
     verify_fitness: float = 0.0
     distinct_radius_m: float = 10.0
     min_distinctiveness: float = 0.15
@@ -287,6 +295,7 @@ class SearchParams:
         require_parameter(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
                  self.min_confidence)
         require_parameter(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
+        require_parameter(self.threads >= 1, "threads", ">= 1", self.threads)
         require_parameter(self.prefilter_top_k >= 0, "prefilter_top_k", ">= 0 (0 = exhaustive)",
                  self.prefilter_top_k)
         require_parameter(self.prefilter_retry_top_k >= 0, "prefilter_retry_top_k",

@@ -32,7 +32,7 @@ quiet() {
   return "$status"
 }
 quiet $pip install -q --upgrade pip
-quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis ruff==0.17.6 open3d-cpu
+quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis ruff==0.17.6 open3d-cpu threadpoolctl
 if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg, std_srvs.srv, lifecycle_msgs.msg" 2>/dev/null; then
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
     ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs \

@@ -9,9 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from mf_lpr_ros.core.workers import Workers
+
 
 class NumpyArrays:
-    """Storage and reductions on numpy: host and storage are the same memory."""
+    """Storage and reductions on numpy: host and storage are the same memory. Large products
+    are shared among the bank's workers (core.workers)."""
+
+    workers: Workers
 
     @staticmethod
     def _from_host(array: np.ndarray):
@@ -45,6 +50,10 @@ class NumpyArrays:
         """(N, 2 [Re, Im], ...) float32 view of complex64 (N, ...) whose last axis is
         contiguous."""
         return np.moveaxis(values.view(np.float32).reshape(*values.shape, 2), -1, 1)
+
+    def _product(self, left, right):
+        """left @ right for a product too large for one worker thread to do alone."""
+        return self.workers.matmul(left, right)
 
     @staticmethod
     def _multiply_into(left, right, out) -> None:

@@ -22,6 +22,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
 from mf_lpr_ros.core.array_ops import NumpyArrays
+from mf_lpr_ros.core.workers import Workers
 
 
 class PreparedQueries:
@@ -54,7 +55,8 @@ class SpectralBank(NumpyArrays):
     read it as (K, H, references), which BLAS takes as a transposed operand without a copy.
     """
 
-    def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64) -> None:
+    def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
+                 workers: Workers | None = None) -> None:
         if max_shift < 0:
             raise ValueError(f"max_shift must be >= 0, got {max_shift}")
         self.height, self.width, self.max_shift = height, width, max_shift
@@ -66,7 +68,9 @@ class SpectralBank(NumpyArrays):
         self._count = 0
         self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
         self._operator = np.empty(0, dtype=np.complex64)
-        self._one_query_operator = np.empty(0, dtype=np.complex64)
+        self.workers = workers or Workers()
+        # One buffer per worker thread of _allowed_scores.
+        self._one_query_operators = [np.empty(0, dtype=np.complex64)] * self.workers.threads
 
     def __len__(self) -> int:
         return self._count
@@ -142,20 +146,22 @@ class SpectralBank(NumpyArrays):
             prepared.operator = self._expand(prepared.windows, self._operator_buffer(shape))
         return prepared.operator
 
-    def _query_operator(self, prepared: PreparedQueries, query: int) -> np.ndarray:
-        """The operator of one query of prepared (K, 2S+1, H), in a buffer reused for
+    def _query_operator(self, prepared: PreparedQueries, query: int, worker: int = 0
+                        ) -> np.ndarray:
+        """The operator of one query of prepared (K, 2S+1, H), in a buffer the worker reuses for
         every query: small enough to stay in cache between being built and being used."""
-        return self._expand(prepared.windows[:, query: query + 1], self._one_query_buffer())
+        return self._expand(prepared.windows[:, query: query + 1],
+                            self._one_query_buffer(worker))
 
     def _operator_buffer(self, shape: tuple[int, ...]) -> np.ndarray:
         return self._operator.reshape(shape)
 
-    def _one_query_buffer(self) -> np.ndarray:
+    def _one_query_buffer(self, worker: int) -> np.ndarray:
         # Called for every heading of every query: a tuple comparison, not np.prod (~17 us).
         shape = (self.n_freqs, 1, self.n_shifts, self.height)
-        if self._one_query_operator.shape != shape:
-            self._one_query_operator = np.empty(shape, dtype=np.complex64)
-        return self._one_query_operator
+        if self._one_query_operators[worker].shape != shape:
+            self._one_query_operators[worker] = np.empty(shape, dtype=np.complex64)
+        return self._one_query_operators[worker]
 
     def _expand(self, windows: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The operator of row windows (K, A, 2S+1, H), copied into out (same shape)."""
@@ -185,13 +191,14 @@ class SpectralBank(NumpyArrays):
     def _correlate(self, operator: np.ndarray, columns: np.ndarray) -> np.ndarray:
         n_rows, n_refs = operator.shape[1], columns.shape[2]
         # `@`, not np.matmul: the torch backend's tensors take this same path.
-        scores = self._windowed_inverse(operator @ columns)
+        scores = self._windowed_inverse(self._product(operator, columns))
         return scores.reshape(self.n_shifts, n_rows // self.n_shifts, self.n_shifts, n_refs)
 
     def _windowed_inverse(self, spectra: np.ndarray) -> np.ndarray:
         """Correlation scores (2S+1 [dj], R x n) from y-correlated spectra (K, R, n)."""
         width = int(np.prod(spectra.shape[1:]))
-        return self._inverse @ self._real_parts(spectra).reshape(2 * self.n_freqs, width)
+        return self._product(self._inverse,
+                             self._real_parts(spectra).reshape(2 * self.n_freqs, width))
 
     @staticmethod
     def _empty_spectra(shape: tuple[int, ...]) -> np.ndarray:
@@ -261,11 +268,17 @@ class SpectralBank(NumpyArrays):
         queries, positions = np.nonzero(np.asarray(allowed).T)
         spectra = self._empty_spectra((self.n_freqs, self.n_shifts, len(queries)))
         bounds = np.searchsorted(queries, np.arange(allowed.shape[1] + 1))
-        for query in np.unique(queries):
-            first, last = int(bounds[query]), int(bounds[query + 1])
-            self._multiply_into(self._query_operator(prepared, int(query)),
-                                self._columns(candidates[self._index(positions[first:last])]),
-                                spectra[:, :, first:last])
+        present = np.unique(queries)
+
+        def multiply(worker: int) -> None:
+            """The products of every threads-th query, from the worker-th on."""
+            for query in present[worker:: self.workers.threads]:
+                first, last = int(bounds[query]), int(bounds[query + 1])
+                self._multiply_into(self._query_operator(prepared, int(query), worker),
+                                    self._columns(candidates[self._index(positions[first:last])]),
+                                    spectra[:, :, first:last])
+
+        self.workers.run(multiply)
         # One inverse for every pair: a product as wide as all of them runs at BLAS speed.
         scores = self._windowed_inverse(spectra).reshape(self.n_shifts, self.n_shifts,
                                                           len(queries))
@@ -322,24 +335,42 @@ def local_fft_shape(height: int, width: int, max_shift: int) -> tuple[int, int]:
             sp_fft.next_fast_len(width + max_shift, real=True))
 
 
-def local_correlator(reference: np.ndarray, max_shift: int
-                     ) -> Callable[[np.ndarray], np.ndarray]:
-    """correlate_fft2 against one reference, its spectrum computed once for every batch of
-    queries (the local stage correlates a finalist in two batches)."""
-    shape = local_fft_shape(*reference.shape, max_shift)
-    ref_spectrum = sp_fft.rfft2(np.asarray(reference, dtype=np.float32), s=shape)
-    window = np.arange(-max_shift, max_shift + 1)
+class LocalCorrelation:
+    """The local stage's windowed correlation by 2-D FFT, for H x W images within max_shift.
 
-    def correlate(queries: np.ndarray) -> np.ndarray:
-        query_spectra = sp_fft.rfft2(np.asarray(queries, dtype=np.float32), s=shape,
-                                     axes=(-2, -1))
-        # Inverse along y first and keep the window's rows: the inverse along x then runs on
-        # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
-        rows = sp_fft.ifft(np.conj(query_spectra) * ref_spectrum, axis=-2)[:, window % shape[0]]
-        return sp_fft.irfft(rows, n=shape[1], axis=-1)[:, :, window % shape[1]].astype(
-            np.float32)
+    A query's spectrum is computed once (spectra) and correlated with any number of references
+    (against): the finalists of one query mostly share their headings, and so their turned
+    queries (KITTI 00: 909 distinct headings among 1500 finalists).
+    """
 
-    return correlate
+    def __init__(self, image_shape: tuple[int, int], max_shift: int) -> None:
+        self.shape = local_fft_shape(*image_shape, max_shift)
+        self.window = np.arange(-max_shift, max_shift + 1)
+
+    def spectra(self, images: np.ndarray, threads: int = 1) -> np.ndarray:
+        """The spectra of images (..., H, W), a batch shared among threads."""
+        return sp_fft.rfft2(np.asarray(images, dtype=np.float32), s=self.shape, axes=(-2, -1),
+                            workers=threads)
+
+    @staticmethod
+    def stack(spectra: list[np.ndarray]) -> np.ndarray:
+        """Single images' spectra as one batch."""
+        return np.stack(spectra)
+
+    def against(self, reference: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        """The windowed correlation (A, 2S+1, 2S+1) of a batch of query spectra (A, ...) with
+        reference (H, W), whose spectrum is computed here once."""
+        ref_spectrum = self.spectra(reference)
+        rows, cols = self.window % self.shape[0], self.window % self.shape[1]
+
+        def correlate(query_spectra: np.ndarray) -> np.ndarray:
+            # Inverse along y first and keep the window's rows: the inverse along x then runs on
+            # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
+            window_rows = sp_fft.ifft(np.conj(query_spectra) * ref_spectrum, axis=-2)[:, rows]
+            return sp_fft.irfft(window_rows, n=self.shape[1], axis=-1)[:, :, cols].astype(
+                np.float32)
+
+        return correlate
 
 
 def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -> np.ndarray:
@@ -347,4 +378,5 @@ def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -
 
     Cheaper than a SpectralBank for a handful of references. Returns (A, 2S+1, 2S+1).
     """
-    return local_correlator(reference, max_shift)(queries)
+    correlation = LocalCorrelation(reference.shape, max_shift)
+    return correlation.against(reference)(correlation.spectra(queries))

@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from mf_lpr_ros.core.array_ops import NumpyArrays
+from mf_lpr_ros.core.workers import Workers
 
 _MIN_RADIUS_BINS = 1.5
 _RADIAL_SUBSAMPLE_BINS = 0.5
@@ -36,7 +37,8 @@ class PolarSpectrumIndex(NumpyArrays):
     """
 
     def __init__(self, image_size: int, n_radii: int = 20, n_angles: int = 32,
-                 capacity: int = 64) -> None:
+                 capacity: int = 64, workers: Workers | None = None) -> None:
+        self.workers = workers or Workers()
         self.fft_size = 1 << int(np.ceil(np.log2(image_size)))
         self.n_radii, self.n_angles = n_radii, n_angles
         self.n_harmonics = n_angles // 2 + 1
@@ -140,8 +142,8 @@ class PolarSpectrumIndex(NumpyArrays):
     def _over_angles(self, features, query):
         """(n_angles, n) circular correlations of n references' features with the query's."""
         cross = (features @ query)[:, :, 0]
-        return self._inverse @ self._real_parts(cross).reshape(2 * self.n_harmonics,
-                                                               cross.shape[1])
+        return self._product(self._inverse,
+                             self._real_parts(cross).reshape(2 * self.n_harmonics, cross.shape[1]))
 
     def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
         """Degrees in [0, 180) by which the query image is best turned onto each reference (its

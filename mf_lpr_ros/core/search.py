@@ -148,10 +148,16 @@ class MatchedFilterIndex:
         # On demand, the bank holds one query's candidates at a time.
         capacity = search.prefilter_top_k if self.spectra_on_demand else len(reference_map)
         backend = make_backend(search.backend, size, self.low_shift, max(capacity, 1),
-                               prefilter=search.prefilter_top_k > 0)
+                               prefilter=search.prefilter_top_k > 0,
+                               local_size=self.params.size, local_shift=self.high_shift,
+                               threads=search.threads)
         self.backend = backend.name
         self.bank, self.prefilter = backend.bank, backend.prefilter
-        self._local_correlator = backend.local_correlator
+        self._local_correlation = backend.local
+        self._workers = backend.workers
+        # The query turned to each local-stage angle used so far, by angle: finalists of one
+        # query mostly share their headings. Emptied at every query.
+        self._turned_query: dict[float, _TurnedQuery] = {}
         self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
         self._indexed = 0
@@ -222,7 +228,9 @@ class MatchedFilterIndex:
         with self._query_lock:
             self._query_offset = np.full(2, float(sensor_offset_m))
             self._query_seen = self._seen(occupancy)
-            return self._query(occupancy, n_active)
+            self._turned_query = {}
+            with self._workers.own_cores():
+                return self._query(occupancy, n_active)
 
     def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
         n_refs = len(self) if n_active is None else min(n_active, len(self))
@@ -289,9 +297,17 @@ class MatchedFilterIndex:
             located = (self.bank.peaks(volume, positions) if volume is not None
                        else self.bank.locate(prepared, columns[positions],
                                              None if allowed is None else allowed[positions]))
-            return [self._local(occupancy, int(reference),
-                                self.global_angles[headings[int(query_index)]])
-                    for reference, (query_index, *_) in zip(searched[positions], located)]
+            # The finalists' first angles are turned in one batch, then the finalists are
+            # aligned on the search's threads: the local stage is mostly FFTs, which run
+            # without the GIL.
+            global_angles = self.global_angles[headings[np.unique(located[:, 0]).astype(int)]]
+            self._turn_query(occupancy, [(angle + self.local_offsets,
+                                          self._first_local_angles(len(self.local_offsets)))
+                                         for angle in global_angles])
+            return self._workers.map(
+                lambda job: self._local(occupancy, int(job[0]),
+                                        self.global_angles[headings[int(job[1][0])]]),
+                list(zip(searched[positions], located)))
 
         peaks = local_peaks(order[: self.search.top_n])
         peaks.sort(key=lambda peak: -peak.score)
@@ -496,25 +512,20 @@ class MatchedFilterIndex:
         angles = global_angle + self.local_offsets
         reference_image = weighted(self.map.occupancy(reference), w, self.covered)
 
-        # Each angle turned: its weights and, when the footprint turns too, its footprint.
-        turned_at: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
-
-        def turned(indices: np.ndarray) -> np.ndarray:
-            """The query's weights at angles[indices]."""
-            covered = self._query_covered(angles, indices)
-            queries = weighted(rotate_occupancy(occupancy, angles, indices), w, covered)
-            for k, index in enumerate(indices):
-                turned_at[int(index)] = (queries[k], covered[k] if covered is not None
-                                         and covered.ndim == 3 else None)
-            return queries
+        def turned(indices: np.ndarray):
+            """The spectra of the query's weights at angles[indices]."""
+            self._turn_query(occupancy, [(angles, indices)])
+            return self._local_correlation.stack(
+                [self._turned_query[float(angles[index])].spectrum for index in indices])
 
         surface = self._coarse_to_fine(turned, len(angles),
-                                       self._local_correlator(reference_image, self.high_shift))
+                                       self._local_correlation.against(reference_image))
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
         raw = float(surface[a, row, col])
-        best_query, best_covered = turned_at[int(a)]
+        best = self._turned_query[float(angles[a])]
+        best_query, best_covered = best.weights, best.covered
         query_norm = float(np.linalg.norm(best_query))
         if self._query_seen is not None:
             # The cosine over the cells the query saw: the reference beyond them is unknown
@@ -525,6 +536,30 @@ class MatchedFilterIndex:
         return _LocalPeak(reference=reference, score=raw / normaliser,
                           confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))
+
+    def _turn_query(self, occupancy: np.ndarray,
+                    angle_sets: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """The query turned to angles[indices] for each (angles, indices), those not turned yet
+        (self._turned_query), their spectra in one batch on the search's threads. Each set
+        of angles is one of the rotation tables prepared at start-up."""
+        w = self.params.unoccupied_weight
+        keys, weights, footprints = [], [], []
+        for angles, indices in angle_sets:
+            missing = np.array([index for index in indices
+                                if float(angles[index]) not in self._turned_query], dtype=np.int64)
+            if not len(missing):
+                continue
+            covered = self._query_covered(angles, missing)
+            weights.append(weighted(rotate_occupancy(occupancy, angles, missing), w, covered))
+            turns = covered is not None and covered.ndim == 3
+            footprints += [covered[k] if turns else None for k in range(len(missing))]
+            keys += [float(angle) for angle in angles[missing]]
+        if not keys:
+            return
+        queries = np.concatenate(weights)
+        spectra = self._local_correlation.spectra(queries)
+        for k, key in enumerate(keys):
+            self._turned_query[key] = _TurnedQuery(queries[k], footprints[k], spectra[k])
 
     def _seen(self, occupancy: np.ndarray) -> np.ndarray | None:
         """The query's own footprint when queries are matched by what they observed
@@ -556,6 +591,12 @@ class MatchedFilterIndex:
                               self.params.unoccupied_weight, self.params.pool,
                               self._query_covered(self.global_angles, only))
 
+    @staticmethod
+    def _first_local_angles(n_angles: int) -> np.ndarray:
+        """The local angles _coarse_to_fine correlates first (indices): every other one, or all
+        of a few."""
+        return np.arange(n_angles) if n_angles < 5 else np.arange(0, n_angles, 2)
+
     def _coarse_to_fine(self, turned: Callable[[np.ndarray], np.ndarray], n_angles: int,
                         correlate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:
@@ -563,12 +604,12 @@ class MatchedFilterIndex:
         (and the query is never turned to them). The score falls off smoothly over a few
         degrees, so the peak lies beside the best of every other angle, and the sub-degree
         fit needs only it and its two neighbours: ~3/4 of the correlations of all angles.
-        turned(indices) gives the query at those angles, correlate the surfaces of queries."""
-        if n_angles < 5:
-            return correlate(turned(np.arange(n_angles)))
+        turned(indices) gives the query's spectra at those angles, correlate their surfaces."""
+        coarse = self._first_local_angles(n_angles)
+        if len(coarse) == n_angles:
+            return correlate(turned(coarse))
         shifts = 2 * self.high_shift + 1
         surface = np.full((n_angles, shifts, shifts), -np.inf, dtype=np.float32)
-        coarse = np.arange(0, n_angles, 2)
         surface[coarse] = correlate(turned(coarse))
         best = int(coarse[np.argmax(surface[coarse].reshape(len(coarse), -1).max(axis=1))])
         beside = np.array([k for k in (best - 1, best + 1) if 0 <= k < n_angles])
@@ -629,3 +670,13 @@ class _LocalPeak:
     col: int
 
 
+
+
+@dataclass
+class _TurnedQuery:
+    """The query at one local-stage angle: its weights, its footprint when that turns with it
+    (else None), and its spectrum (LocalCorrelation.spectra)."""
+
+    weights: np.ndarray
+    covered: np.ndarray | None
+    spectrum: object

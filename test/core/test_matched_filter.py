@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2, local_correlator
+from mf_lpr_ros.core.matched_filter import LocalCorrelation, SpectralBank, correlate_fft2
+from mf_lpr_ros.core.workers import Workers
 
 
 def correlate_direct(query, reference, max_shift):
@@ -85,13 +86,33 @@ def test_shifted_copy_peaks_at_its_shift(rng):
     assert (row - 8, col - 8) == (5, -3)
 
 
-def test_a_reference_correlator_serves_several_batches(rng):
-    reference = rng.normal(size=(30, 30)).astype(np.float32)
+def test_query_spectra_serve_several_references_and_batches(rng):
+    references = rng.normal(size=(2, 30, 30)).astype(np.float32)
     queries = rng.normal(size=(5, 30, 30)).astype(np.float32)
-    correlate = local_correlator(reference, 6)
-    for batch in (queries[:2], queries[2:], queries[[4, 0]]):
-        np.testing.assert_allclose(correlate(batch), correlate_fft2(batch, reference, 6),
-                                   atol=1e-5)
+    correlation = LocalCorrelation((30, 30), 6)
+    spectra = correlation.spectra(queries)
+    for reference in references:
+        correlate = correlation.against(reference)
+        for batch in ([0, 1], [2, 3, 4], [4, 0]):
+            np.testing.assert_allclose(
+                correlate(correlation.stack([spectra[k] for k in batch])),
+                correlate_fft2(queries[batch], reference, 6), atol=1e-5)
+
+
+def test_a_bank_on_two_threads_scores_as_on_one(rng):
+    references = rng.normal(size=(40, 24, 24)).astype(np.float32)
+    queries = rng.normal(size=(6, 24, 24)).astype(np.float32)
+    subset = np.arange(0, 40, 3)
+    allowed = rng.random((len(subset), len(queries))) < 0.5
+    results = []
+    for threads in (1, 2):
+        bank = SpectralBank(24, 24, 5, workers=Workers(threads))
+        bank.append(references)
+        prepared = bank.prepare_queries(queries)
+        best, pairs = bank.best_of_subset(prepared, subset, allowed=allowed)
+        results.append((best, pairs.scores, bank.best_per_reference(bank.prepare_queries(queries))))
+    for one, two in zip(*results):
+        np.testing.assert_allclose(two, one, rtol=1e-5, atol=1e-5)
 
 
 def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):

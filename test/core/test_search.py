@@ -61,6 +61,45 @@ def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref,
     assert set(result.timings_ms) == {"global", "prefilter", "local"}
 
 
+@pytest.mark.parametrize("prefilter_top_k", [0, 2])
+def test_two_threads_find_what_one_finds(world, synthetic_map, prefilter_top_k):
+    points, _ = scan_world(world, 21.45, 18.2, -1.7, np.random.default_rng(1))
+    query = describe_points(points, PARAMS)
+    one, two = (MatchedFilterIndex(synthetic_map, SearchParams(
+        threads=threads, prefilter_top_k=prefilter_top_k)).query(query) for threads in (1, 2))
+    assert two.reference_index == one.reference_index
+    np.testing.assert_allclose(two.pose, one.pose, atol=1e-6)
+    assert two.confidence == pytest.approx(one.confidence, abs=1e-6)
+    assert ([h.reference_index for h in two.hypotheses]
+            == [h.reference_index for h in one.hypotheses])
+
+
+def test_finalists_at_one_heading_turn_the_query_once(world, monkeypatch):
+    # Three references of one place: the finalists share the global heading, so the local
+    # stage turns and transforms the query once per local angle, not once per finalist.
+    reference_map = ReferenceMap(PARAMS)
+    for i, x in enumerate((0.0, 0.4, 0.8)):
+        points, pose = scan_world(world, x, 0, 0, np.random.default_rng(i))
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose, i)
+    index = MatchedFilterIndex(reference_map, SearchParams(threads=1, top_n=3))
+    transformed = []
+    correlation = type(index._local_correlation)
+    original = correlation.spectra
+
+    def counting(self, images, *args):
+        if np.ndim(images) == 3:
+            transformed.append(len(images))
+        return original(self, images, *args)
+
+    monkeypatch.setattr(correlation, "spectra", counting)
+    points, _ = scan_world(world, 0.3, 0.2, 0.05, np.random.default_rng(9))
+    result = index.query(describe_points(points, PARAMS))
+    assert {h.reference_index for h in result.hypotheses} == {0, 1, 2}
+    n_angles = len(index.local_offsets)
+    # Each finalist alone transforms 8 of the 11 angles: 24 for three.
+    assert 0 < sum(transformed) <= n_angles
+
+
 def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):
     rng = np.random.default_rng(2)
     errors = []

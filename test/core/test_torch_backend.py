@@ -50,8 +50,10 @@ def test_bank_operations_match_numpy():
     np.testing.assert_allclose(gpu.locate(gpu_prepared, subset, allowed),
                                cpu.locate(cpu_prepared, subset, allowed), atol=1e-4)
     np.testing.assert_allclose(gpu.norms, cpu.norms)
-    np.testing.assert_allclose(torch_backend.local_correlator(references[3], 4)(queries),
-                               correlate_fft2(queries, references[3], 4), atol=1e-4)
+    correlation = torch_backend.TorchLocalCorrelation(references.shape[1:], 4)
+    np.testing.assert_allclose(
+        correlation.against(references[3])(correlation.spectra(queries)),
+        correlate_fft2(queries, references[3], 4), atol=1e-4)
 
 
 def test_prefilter_matches_numpy():

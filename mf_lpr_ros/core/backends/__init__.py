@@ -6,15 +6,12 @@ backend SearchParams.backend names; core.search uses nothing else backend-specif
 
 from __future__ import annotations
 
-import functools
 import importlib
 from dataclasses import dataclass
-from typing import Callable
 
-import numpy as np
-
-from mf_lpr_ros.core.matched_filter import SpectralBank, local_correlator
+from mf_lpr_ros.core.matched_filter import LocalCorrelation, SpectralBank
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
+from mf_lpr_ros.core.workers import Workers
 from mf_lpr_ros.errors import ConfigError
 
 BACKENDS = ("auto", "numpy", "torch")
@@ -27,8 +24,10 @@ class SearchBackend:
     name: str
     bank: SpectralBank
     prefilter: PolarSpectrumIndex | None
-    # (reference image, max shift) -> the windowed correlation of query batches with it.
-    local_correlator: Callable[[np.ndarray, int], Callable[[np.ndarray], np.ndarray]]
+    # The local stage's correlation of high-resolution images within the local shift window.
+    local: LocalCorrelation
+    # The threads one search shares its work among (one on torch, which has its own).
+    workers: Workers
 
 
 def resolve_backend(name: str) -> str:
@@ -46,9 +45,11 @@ def resolve_backend(name: str) -> str:
 
 
 def make_backend(name: str, image_size: int, max_shift: int, capacity: int,
-                 prefilter: bool) -> SearchBackend:
-    """A bank of image_size^2 low-resolution references searched within max_shift cells, with
-    a prefilter when asked."""
+                 prefilter: bool, local_size: int, local_shift: int, threads: int = 1
+                 ) -> SearchBackend:
+    """A bank of image_size^2 low-resolution references searched within max_shift cells (its
+    products on threads threads, numpy only), with a prefilter when asked, and the local
+    stage's correlation of local_size^2 images within local_shift cells."""
     resolved = resolve_backend(name)
     if resolved == "torch":
         from mf_lpr_ros.core.backends import torch_backend
@@ -59,7 +60,11 @@ def make_backend(name: str, image_size: int, max_shift: int, capacity: int,
             torch_backend.TorchSpectralBank(image_size, image_size, max_shift, capacity, device),
             torch_backend.TorchPolarSpectrumIndex(image_size, capacity, device)
             if prefilter else None,
-            functools.partial(torch_backend.local_correlator, device=device))
-    return SearchBackend(resolved, SpectralBank(image_size, image_size, max_shift, capacity),
-                         PolarSpectrumIndex(image_size, capacity=capacity) if prefilter else None,
-                         local_correlator)
+            torch_backend.TorchLocalCorrelation((local_size, local_size), local_shift, device),
+            Workers())
+    workers = Workers(threads)
+    return SearchBackend(resolved, SpectralBank(image_size, image_size, max_shift, capacity,
+                                                workers),
+                         PolarSpectrumIndex(image_size, capacity=capacity, workers=workers)
+                         if prefilter else None,
+                         LocalCorrelation((local_size, local_size), local_shift), workers)

@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from mf_lpr_ros.core.matched_filter import PreparedQueries, SpectralBank, local_fft_shape
+from mf_lpr_ros.core.matched_filter import LocalCorrelation, PreparedQueries, SpectralBank
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 
 
@@ -33,6 +33,10 @@ class TorchArrays:
 
     def _from_host(self, array: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(array)).to(self.device)
+
+    @staticmethod
+    def _product(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+        return left @ right
 
     @staticmethod
     def _to_host(tensor: torch.Tensor) -> np.ndarray:
@@ -93,7 +97,7 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
     def _operator_buffer(self, shape: tuple[int, ...]) -> None:
         return None
 
-    def _one_query_buffer(self) -> None:
+    def _one_query_buffer(self, worker: int) -> None:
         return None
 
     def prepare_queries(self, queries: np.ndarray) -> PreparedQueries:
@@ -128,21 +132,29 @@ class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
         super().adopt(np.array(features))
 
 
-def local_correlator(reference: np.ndarray, max_shift: int, device: torch.device | None = None
-                     ) -> Callable[[np.ndarray], np.ndarray]:
-    """matched_filter.local_correlator on a torch device."""
-    device = device or default_device()
-    shape = local_fft_shape(*reference.shape, max_shift)
-    ref_spectrum = torch.fft.rfft2(
-        torch.from_numpy(np.asarray(reference, np.float32)).to(device), s=shape)
-    window = torch.arange(-max_shift, max_shift + 1, device=device)
-    rows, cols = window % shape[0], window % shape[1]
+class TorchLocalCorrelation(LocalCorrelation):
+    """matched_filter.LocalCorrelation on a torch device (spectra stay on it)."""
 
-    def correlate(queries: np.ndarray) -> np.ndarray:
-        query_spectra = torch.fft.rfft2(
-            torch.from_numpy(np.asarray(queries, np.float32)).to(device), s=shape)
-        full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=shape)
-        return full[:, rows][:, :, cols].cpu().numpy()
+    def __init__(self, image_shape: tuple[int, int], max_shift: int,
+                 device: torch.device | None = None) -> None:
+        super().__init__(image_shape, max_shift)
+        self.device = device or default_device()
 
-    return correlate
+    def spectra(self, images: np.ndarray, threads: int = 1) -> torch.Tensor:
+        return torch.fft.rfft2(torch.from_numpy(np.asarray(images, np.float32)).to(self.device),
+                               s=self.shape)
 
+    @staticmethod
+    def stack(spectra: list[torch.Tensor]) -> torch.Tensor:
+        return torch.stack(spectra)
+
+    def against(self, reference: np.ndarray) -> Callable[[torch.Tensor], np.ndarray]:
+        ref_spectrum = self.spectra(reference)
+        window = torch.from_numpy(self.window).to(self.device)
+        rows, cols = window % self.shape[0], window % self.shape[1]
+
+        def correlate(query_spectra: torch.Tensor) -> np.ndarray:
+            full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=self.shape)
+            return full[:, rows][:, :, cols].cpu().numpy()
+
+        return correlate

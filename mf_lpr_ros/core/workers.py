@@ -1,0 +1,96 @@
+"""Threads that share one search's array work on the numpy backend (SearchParams.threads).
+
+numpy releases the GIL while its products and scipy's FFTs run, so threads of one process run
+them on separate cores. OpenBLAS's own threads do not mix with ours: after a product large
+enough for it to share, its threads spin-wait for the next one, and a thread of ours then finds
+its core taken (a query's 30-70 small per-heading products, too small for OpenBLAS to share,
+ran slower on 2 threads than on 1 whenever a large product had run just before). So while a
+search runs on several threads, BLAS is held to one thread (threadpoolctl) and the few large
+products are split by columns among ours instead (Workers.matmul). Without threadpoolctl a
+search stays on one thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator, Sequence, TypeVar
+
+import numpy as np
+
+from mf_lpr_ros.optional import available, require
+
+T = TypeVar("T")
+R = TypeVar("R")
+# Multiply-adds below which a share of a product is not worth handing to another thread (~0.1 ms
+# of one core; the prefilter's product at 1500 references, 1.6 M, runs faster on one).
+_MIN_WORK_PER_THREAD = 2_000_000
+
+
+class Workers:
+    """threads threads (the caller's among them) for work split by worker number."""
+
+    def __init__(self, threads: int = 1) -> None:
+        self.threads = max(int(threads), 1) if available("threadpoolctl") else 1
+        self._pool: ThreadPoolExecutor | None = None
+
+    def run(self, work: Callable[[int], None]) -> None:
+        """work(worker) for worker in 0 .. threads - 1, worker 0 on the calling thread; returns
+        when all are done (re-raising the first error)."""
+        if self.threads == 1:
+            work(0)
+            return
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="mf_lpr_search")
+        others = [self._pool.submit(work, worker) for worker in range(1, self.threads)]
+        work(0)
+        for other in others:
+            other.result()
+
+    def map(self, function: Callable[[T], R], items: Sequence[T]) -> list[R]:
+        """[function(item) for item in items], the items dealt out among the threads."""
+        results: list = [None] * len(items)
+
+        def apply(worker: int) -> None:
+            for k in range(worker, len(items), self.threads):
+                results[k] = function(items[k])
+
+        if len(items) > 1:
+            self.run(apply)
+        else:
+            apply(0)
+        return results
+
+    def matmul(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """left @ right, right's columns (its last axis) split among the threads."""
+        columns = right.shape[-1]
+        stack = np.broadcast_shapes(left.shape[:-2], right.shape[:-2])
+        work = math.prod(stack) * left.shape[-2] * left.shape[-1] * columns
+        if self.threads == 1 or work < self.threads * _MIN_WORK_PER_THREAD:
+            return left @ right
+        out = np.empty(stack + (left.shape[-2], columns), dtype=np.result_type(left, right))
+        bounds = np.linspace(0, columns, self.threads + 1).round().astype(int)
+
+        def multiply(worker: int) -> None:
+            part = slice(bounds[worker], bounds[worker + 1])
+            np.matmul(left, right[..., part], out=out[..., part])
+
+        self.run(multiply)
+        return out
+
+    @contextlib.contextmanager
+    def own_cores(self) -> Iterator[None]:
+        """BLAS held to one thread within, when this search runs on several of its own."""
+        if self.threads == 1:
+            yield
+            return
+        with _blas_controller().limit(limits=1, user_api="blas"):
+            yield
+
+
+@functools.cache
+def _blas_controller():
+    """The process's native thread pools, found once (a scan of the loaded libraries)."""
+    return require("threadpoolctl").ThreadpoolController()

@@ -1,0 +1,54 @@
+import threading
+
+import numpy as np
+import pytest
+
+from mf_lpr_ros.core import workers as workers_module
+from mf_lpr_ros.core.workers import Workers
+
+
+def test_map_keeps_the_order_of_its_items_and_uses_every_thread():
+    seen_threads = set()
+    barrier = threading.Barrier(2, timeout=10)
+
+    def square(item: int) -> int:
+        seen_threads.add(threading.get_ident())
+        if item < 2:
+            barrier.wait()  # the first two items can only pass together: on two threads
+        return item * item
+
+    assert Workers(2).map(square, list(range(7))) == [k * k for k in range(7)]
+    assert len(seen_threads) == 2
+
+
+def test_run_reraises_a_workers_error():
+    def fail_on_the_second(worker: int) -> None:
+        if worker == 1:
+            raise ValueError("worker 1 failed")
+
+    with pytest.raises(ValueError, match="worker 1 failed"):
+        Workers(2).run(fail_on_the_second)
+
+
+@pytest.mark.parametrize("shapes", [((21, 74), (74, 30000)), ((37, 63, 60), (37, 60, 900))])
+def test_a_split_product_equals_the_whole(shapes):
+    rng = np.random.default_rng(0)
+    left, right = (rng.normal(size=shape).astype(np.float32) for shape in shapes)
+    split = Workers(2).matmul(left, right)
+    np.testing.assert_allclose(split, left @ right, rtol=1e-5, atol=1e-4)
+
+
+def test_blas_is_held_to_one_thread_only_while_a_threaded_search_runs():
+    controller = workers_module._blas_controller()
+    before = [info["num_threads"] for info in controller.info() if info["user_api"] == "blas"]
+    with Workers(2).own_cores():
+        inside = [info["num_threads"] for info in workers_module._blas_controller().select(
+            user_api="blas").info()]
+    assert inside and all(count == 1 for count in inside)
+    after = [info["num_threads"] for info in controller.info() if info["user_api"] == "blas"]
+    assert after == before
+
+
+def test_without_threadpoolctl_a_search_stays_on_one_thread(monkeypatch):
+    monkeypatch.setattr(workers_module, "available", lambda module: False)
+    assert Workers(4).threads == 1
