@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from mf_lpr_ros.core.backends import make_backend
 from mf_lpr_ros.core.descriptor import (
+    TurnedPooling,
     footprint,
     observed_cells,
     pooled_weights,
@@ -154,6 +155,12 @@ class MatchedFilterIndex:
         self.backend = backend.name
         self.bank, self.prefilter = backend.bank, backend.prefilter
         self._local_correlation = backend.local
+        # Every heading at once from the occupied cells, where the footprint does not turn.
+        self._turned_pooling = (
+            TurnedPooling(self.params.size, self.global_angles, self.params.pool,
+                          self.params.unoccupied_weight, self.covered)
+            if self.params.pool > 1 and (self.covered is None or not turns_with_sensor(
+                self.params)) else None)
         self._workers = backend.workers
         # The query turned to each local-stage angle used so far, by angle: finalists of one
         # query mostly share their headings. Emptied at every query.
@@ -587,6 +594,8 @@ class MatchedFilterIndex:
         """The query's low-resolution weights turned to global_angles[headings]: (A, d, d)."""
         # Every heading: the whole table as it is (a copy of its rows costs ~0.5 ms).
         only = None if len(headings) == len(self.global_angles) else headings
+        if only is None and self._turned_pooling is not None and self._query_seen is None:
+            return self._turned_pooling(occupancy)
         return pooled_weights(rotate_occupancy(occupancy, self.global_angles, only),
                               self.params.unoccupied_weight, self.params.pool,
                               self._query_covered(self.global_angles, only))

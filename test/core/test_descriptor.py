@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.core.descriptor import (
+    TurnedPooling,
     auto_voxel_size,
     cap_patches,
     describe_density_image,
@@ -165,3 +166,19 @@ def test_cells_outside_the_footprint_weigh_nothing():
                                pool(image, 2), atol=1e-6)
     assert footprint(DescriptorParams(crop="square")) is None
     assert covered[60, 60] and not covered[0, 0] and covered[0, 60]
+
+
+@pytest.mark.parametrize("crop", ["disc", "square"])
+@pytest.mark.parametrize("fill", [0.0, 0.02, 0.12, 1.0])
+def test_turned_pooling_gives_the_numbers_of_turning_then_pooling(crop, fill):
+    params = DescriptorParams(voxel_size=0.4, crop=crop)
+    covered = footprint(params)
+    angles = np.arange(0.0, 360.0, 5.0)
+    turned_pooling = TurnedPooling(params.size, angles, params.pool, params.unoccupied_weight,
+                                   covered)
+    occupancy = np.random.default_rng(3).random((params.size,) * 2) < fill
+    expected = pooled_weights(rotate_occupancy(occupancy, angles), params.unoccupied_weight,
+                              params.pool, covered)
+    got = turned_pooling(occupancy)
+    assert got.dtype == expected.dtype
+    assert np.array_equal(got, expected)
