@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterator, Sequence, TypeVar
 
@@ -39,12 +40,15 @@ class Workers:
     def run(self, work: Callable[[int], None]) -> None:
         """work(worker) for worker in 0 .. threads - 1, worker 0 on the calling thread; returns
         when all are done (re-raising the first error)."""
-        if self.threads == 1:
-            work(0)
+        if self.threads == 1 or getattr(_pool_thread, "busy", False):
+            # Work handed out from a pool thread would wait for that thread: do it here.
+            for worker in range(self.threads):
+                work(worker)
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="mf_lpr_search")
-        others = [self._pool.submit(work, worker) for worker in range(1, self.threads)]
+        others = [self._pool.submit(_on_pool_thread, work, worker)
+                  for worker in range(1, self.threads)]
         work(0)
         for other in others:
             other.result()
@@ -86,8 +90,46 @@ class Workers:
         if self.threads == 1:
             yield
             return
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        _hold_blas()
+        try:
             yield
+        finally:
+            _release_blas()
+
+
+_pool_thread = threading.local()
+
+
+def _on_pool_thread(work: Callable[[int], None], worker: int) -> None:
+    _pool_thread.busy = True
+    try:
+        work(worker)
+    finally:
+        _pool_thread.busy = False
+
+
+# Searches of several indexes may overlap in one process: the first to start holds BLAS to
+# one thread and the last to finish gives back the limits found before the first.
+_blas_lock = threading.Lock()
+_blas_holders = 0
+_blas_limits_before = None
+
+
+def _hold_blas() -> None:
+    global _blas_holders, _blas_limits_before
+    with _blas_lock:
+        if _blas_holders == 0:
+            _blas_limits_before = _blas_controller().limit(limits=1, user_api="blas")
+        _blas_holders += 1
+
+
+def _release_blas() -> None:
+    global _blas_holders, _blas_limits_before
+    with _blas_lock:
+        _blas_holders -= 1
+        if _blas_holders == 0:
+            _blas_limits_before.restore_original_limits()
+            _blas_limits_before = None
 
 
 @functools.cache

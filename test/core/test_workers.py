@@ -52,3 +52,29 @@ def test_blas_is_held_to_one_thread_only_while_a_threaded_search_runs():
 def test_without_threadpoolctl_a_search_stays_on_one_thread(monkeypatch):
     monkeypatch.setattr(workers_module, "available", lambda module: False)
     assert Workers(4).threads == 1
+
+
+def test_work_handed_out_from_a_worker_runs_there_instead_of_waiting_for_itself():
+    workers = Workers(2)
+    done = []
+
+    def outer(worker: int) -> None:
+        workers.run(lambda inner: done.append((worker, inner)))
+
+    workers.run(outer)
+    assert sorted(done) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+
+
+def test_overlapping_threaded_searches_give_back_the_limits_found_before_them():
+    controller = workers_module._blas_controller()
+    before = [info["num_threads"] for info in controller.info() if info["user_api"] == "blas"]
+    first, second = Workers(2).own_cores(), Workers(2).own_cores()
+    first.__enter__()
+    second.__enter__()
+    first.__exit__(None, None, None)
+    still_held = [info["num_threads"] for info in controller.info()
+                  if info["user_api"] == "blas"]
+    second.__exit__(None, None, None)
+    after = [info["num_threads"] for info in controller.info() if info["user_api"] == "blas"]
+    assert all(count == 1 for count in still_held)
+    assert after == before
