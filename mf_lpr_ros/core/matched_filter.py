@@ -190,7 +190,6 @@ class SpectralBank(NumpyArrays):
 
     def _correlate(self, operator: np.ndarray, columns: np.ndarray) -> np.ndarray:
         n_rows, n_refs = operator.shape[1], columns.shape[2]
-        # `@`, not np.matmul: the torch backend's tensors take this same path.
         scores = self._windowed_inverse(self._product(operator, columns))
         return scores.reshape(self.n_shifts, n_rows // self.n_shifts, self.n_shifts, n_refs)
 
@@ -347,10 +346,9 @@ class LocalCorrelation:
         self.shape = local_fft_shape(*image_shape, max_shift)
         self.window = np.arange(-max_shift, max_shift + 1)
 
-    def spectra(self, images: np.ndarray, threads: int = 1) -> np.ndarray:
-        """The spectra of images (..., H, W), a batch shared among threads."""
-        return sp_fft.rfft2(np.asarray(images, dtype=np.float32), s=self.shape, axes=(-2, -1),
-                            workers=threads)
+    def spectra(self, images: np.ndarray) -> np.ndarray:
+        """The spectra of images (..., H, W)."""
+        return sp_fft.rfft2(np.asarray(images, dtype=np.float32), s=self.shape, axes=(-2, -1))
 
     @staticmethod
     def stack(spectra: list[np.ndarray]) -> np.ndarray:

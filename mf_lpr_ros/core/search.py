@@ -307,10 +307,10 @@ class MatchedFilterIndex:
             # The finalists' first angles are turned in one batch, then the finalists are
             # aligned on the search's threads: the local stage is mostly FFTs, which run
             # without the GIL.
-            global_angles = self.global_angles[headings[np.unique(located[:, 0]).astype(int)]]
+            finalist_angles = self.global_angles[headings[np.unique(located[:, 0]).astype(int)]]
             self._turn_query(occupancy, [(angle + self.local_offsets,
                                           self._first_local_angles(len(self.local_offsets)))
-                                         for angle in global_angles])
+                                         for angle in finalist_angles])
             return self._workers.map(
                 lambda job: self._local(occupancy, int(job[0]),
                                         self.global_angles[headings[int(job[1][0])]]),
@@ -547,8 +547,8 @@ class MatchedFilterIndex:
     def _turn_query(self, occupancy: np.ndarray,
                     angle_sets: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """The query turned to angles[indices] for each (angles, indices), those not turned yet
-        (self._turned_query), their spectra in one batch on the search's threads. Each set
-        of angles is one of the rotation tables prepared at start-up."""
+        (self._turned_query), their spectra in one batch. Each set of angles is one of the
+        rotation tables prepared at start-up."""
         w = self.params.unoccupied_weight
         keys, weights, footprints = [], [], []
         for angles, indices in angle_sets:
@@ -677,8 +677,6 @@ class _LocalPeak:
     angle_index: int
     row: int
     col: int
-
-
 
 
 @dataclass

@@ -140,7 +140,7 @@ class TorchLocalCorrelation(LocalCorrelation):
         super().__init__(image_shape, max_shift)
         self.device = device or default_device()
 
-    def spectra(self, images: np.ndarray, threads: int = 1) -> torch.Tensor:
+    def spectra(self, images: np.ndarray) -> torch.Tensor:
         return torch.fft.rfft2(torch.from_numpy(np.asarray(images, np.float32)).to(self.device),
                                s=self.shape)
 
