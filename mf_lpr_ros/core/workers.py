@@ -31,7 +31,7 @@ _MIN_WORK_PER_THREAD = 2_000_000
 
 
 class Workers:
-    """threads threads (the caller's among them) for work split by worker number."""
+    """A given number of threads, the caller's among them, for work split by worker number."""
 
     def __init__(self, threads: int = 1) -> None:
         self.threads = max(int(threads), 1) if available("threadpoolctl") else 1
@@ -49,7 +49,12 @@ class Workers:
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="mf_lpr_search")
         others = [self._pool.submit(_on_pool_thread, work, worker)
                   for worker in range(1, self.threads)]
-        work(0)
+        try:
+            work(0)
+        finally:
+            # Never return while a worker still writes into the caller's arrays.
+            for other in others:
+                other.exception()
         for other in others:
             other.result()
 
