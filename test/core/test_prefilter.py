@@ -50,7 +50,7 @@ def test_rotated_and_shifted_copy_ranks_first():
 @pytest.mark.parametrize("turn_deg", [0.0, 37.0, 151.0, 250.0])
 def test_the_prefilter_angle_is_the_turn_back_modulo_half_a_turn(turn_deg):
     """A view turned by turn_deg is turned back onto its place by -turn_deg: the angle of
-    the best circular shift, known modulo 180 degrees, to within a bin (5.6 degrees)."""
+    the best circular shift, known modulo 180 degrees, to within a bin (4.5 degrees)."""
     rng = np.random.default_rng(5)
     places = [blobs(rng) for _ in range(6)]
     index = PolarSpectrumIndex(60)
