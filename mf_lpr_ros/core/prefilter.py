@@ -172,9 +172,9 @@ def _polar_sampling(fft_size: int, n_radii: int, n_angles: int
     Returns rows, cols (P, T) into the (fft_size, fft_size // 2 + 1) spectrum and weights (P, T).
     The magnitude of a real image's spectrum is point-symmetric, so half a turn covers it. Each
     radius averages sub-samples at most _RADIAL_SUBSAMPLE_BINS apart across its interval: read
-    at one radius alone, the structure between radii (which sat ~1.5 frequency bins apart) is
-    lost, and rotated KITTI 00 queries between references 8 m apart lost their true place from
-    the candidates twice as often (docs/RESULTS.md, session 16).
+    at one radius alone, the structure between radii (~1.2 frequency bins apart at 24 radii,
+    1.5 at session 16's 20) is lost, and rotated KITTI 00 queries between references 8 m apart
+    lost their true place from the candidates twice as often (docs/RESULTS.md, session 16).
     """
     radii = np.linspace(_MIN_RADIUS_BINS, fft_size / 2 - 2, n_radii)
     step = radii[1] - radii[0] if n_radii > 1 else 0.0

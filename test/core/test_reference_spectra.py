@@ -8,7 +8,7 @@ import pytest
 from mf_lpr_ros.core import search as search_module
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.prefilter_cache import cache_path
+from mf_lpr_ros.core.prefilter_cache import cache_path, save_features
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import DescriptorParams, SearchParams
@@ -130,6 +130,25 @@ def test_prefilter_cache_is_written_reused_and_rebuilt_when_stale(tmp_path, loop
 
     cache_path(path).write_bytes(b"this is not a cache, only some text")
     assert "not a prefilter cache" in results_and_status()[1]
+
+
+def test_a_cache_of_another_feature_size_is_rebuilt(tmp_path, loop_map, queries):
+    """A cache written by a version whose prefilter read other radii and angles (session 18's
+    20 and 32) is not read as today's features: the index rebuilds it and matches as before."""
+    path = tmp_path / "loop.mfmap"
+    loop_map.save(path)
+    on_demand = dataclasses.replace(SEARCH, reference_spectra="on_demand")
+    expected = [MatchedFilterIndex(loop_map, on_demand).query(query) for query in queries]
+    loaded = ReferenceMap.load(path)
+    older = np.ones((17, len(loop_map), 20), dtype=np.complex64)
+    save_features(cache_path(path), loaded.content_key, older)
+    index = MatchedFilterIndex(loaded, on_demand)
+    assert "another shape" in index.prefilter_cache_status
+    assert "; cached at" in index.prefilter_cache_status
+    for a, query in zip(expected, queries):
+        _same_result(a, index.query(query))
+    assert MatchedFilterIndex(ReferenceMap.load(path),
+                              on_demand).prefilter_cache_status.startswith("loaded from")
 
 
 def test_references_appended_after_loading_are_indexed_but_not_cached(tmp_path, loop_map):
