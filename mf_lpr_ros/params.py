@@ -221,6 +221,12 @@ class SearchParams:
         match is a one-off; a true revisit repeats along the path. Agreement is symmetric: a
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
+    consistency_vouch: a confirmed closure vouches for the matches within consistency_window_m
+        of it on the path that fail distinctiveness alone and agree with it (as above, without
+        the separation): they are published, on time or late. Distinctiveness guards against
+        a look-alike place; a match that lands where odometry and an independently confirmed
+        closure put the query is not one. Only confirmed candidates vouch, so agreement cannot
+        creep along a road from one vouched match to the next (core/verification.py).
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too
@@ -275,6 +281,7 @@ class SearchParams:
     consistency_min_separation_m: float = 1.0
     consistency_tolerance_m: float = 1.5
     consistency_tolerance_deg: float = 5.0
+    consistency_vouch: bool = True
     rerank_margin: float = 0.05
     rerank_agreement_m: float = 2.0
     query_footprint: str = "auto"

@@ -20,6 +20,14 @@ Agreement is symmetric: a candidate that lacked support when it came is confirme
 enough later candidates agree with it (Verdict.confirms names it to the caller, who publishes
 it then: a pose graph takes a closure late as well as on time). So the first matches of a
 revisit are published too, on the same evidence as the ones after them.
+
+A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
+fail distinctiveness alone: such a match is published when it agrees with a confirmed candidate
+within consistency_window_m of travel, earlier or later. Distinctiveness asks whether another
+place looks as alike; once odometry and an independently confirmed closure put the query there,
+a match that lands within consistency_tolerance_m of where they predict is that place, however
+alike another looks. Only confirmed candidates vouch, never a vouched match, so agreement
+cannot creep along a road from one vouched match to the next.
 """
 
 from __future__ import annotations
@@ -38,29 +46,48 @@ from mf_lpr_ros.params import SearchParams
 
 @dataclass
 class Verdict:
-    """Whether a match is published, why not, and what the tests measured."""
+    """Whether a match is published, why not, and what the tests measured. awaiting_vouch: it
+    failed distinctiveness alone, and a later confirmed closure may still vouch for it."""
 
     accepted: bool
     reason: str
     fitness: float = math.nan
     support: int = -1
     confirms: list[Any] = field(default_factory=list)
+    awaiting_vouch: bool = False
 
     @property
     def candidate(self) -> bool:
         """It passed every test but odometry consistency (it may support later matches)."""
         return self.support >= 0
 
+    @property
+    def may_be_confirmed(self) -> bool:
+        """Not published now, but a later match may confirm it (Verdict.confirms)."""
+        return not self.accepted and (self.candidate or self.awaiting_vouch)
+
 
 CONFIRMED_LATER = "accepted: confirmed by later matches"
+VOUCHED = "accepted: a confirmed closure vouches for it"
+
+
+AWAITING_VOUCH = "no confirmed closure vouches for it yet"
 
 
 def confirmed_later(verdict: Verdict) -> Verdict:
-    """An earlier candidate's verdict once later candidates confirmed it."""
-    return Verdict(True, CONFIRMED_LATER, verdict.fitness, verdict.support)
+    """An earlier candidate's verdict once later candidates confirmed it (or, for one that
+    awaited a vouch, a later confirmed closure vouched for it)."""
+    return Verdict(True, reason_when_confirmed(verdict.reason), verdict.fitness,
+                   verdict.support)
 
 
-@dataclass
+def reason_when_confirmed(reason: str) -> str:
+    """What a match that was not published, for this reason, is published for when a later
+    verdict's confirms name it."""
+    return VOUCHED if reason.endswith(AWAITING_VOUCH) else CONFIRMED_LATER
+
+
+@dataclass(eq=False)
 class _Candidate:
     odometry: np.ndarray
     estimate: np.ndarray
@@ -73,11 +100,13 @@ class _Candidate:
 class OdometryConsistency:
     """Counts the candidates whose implied poses, carried along the odometry between them,
     agree (SearchParams.consistency_*): each new candidate with the earlier ones in the window,
-    and each earlier one gains the new one's agreement.
+    and each earlier one gains the new one's agreement. Keeps, in the same window, the matches
+    that await a vouch from a confirmed candidate (module doc).
 
     Only candidates at least min_separation_m apart count for each other: closer than the
     descriptor's submap window, two queries are described from the same scans and one wrong
-    match simply repeats in the other.
+    match simply repeats in the other. A vouch needs no separation: the confirmed candidate
+    was confirmed without the match it vouches for.
     """
 
     def __init__(self, search: SearchParams, min_separation_m: float | None = None) -> None:
@@ -87,6 +116,7 @@ class OdometryConsistency:
         self.travelled_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self._candidates: deque[_Candidate] = deque()
+        self._awaiting_vouch: deque[_Candidate] = deque()
 
     def advance(self, odometry: np.ndarray) -> None:
         """Record the odometry of a query (every query, matched or not): the window is travel."""
@@ -95,39 +125,74 @@ class OdometryConsistency:
             self.travelled_m += float(np.hypot(*(odometry[:2] - self._last_odometry[:2])))
         self._last_odometry = odometry
         window = self.search.consistency_window_m
-        while self._candidates and self.travelled_m - self._candidates[0].travelled_m > window:
-            self._candidates.popleft()
+        for kept in (self._candidates, self._awaiting_vouch):
+            while kept and self.travelled_m - kept[0].travelled_m > window:
+                kept.popleft()
+
+    def _agreeing(self, others, odometry: np.ndarray, estimate: np.ndarray,
+                  min_separation_m: float) -> np.ndarray:
+        """Which of others imply, carried along the odometry to this query, its estimate."""
+        if not others:
+            return np.zeros(0, dtype=bool)
+        other_odometry = np.stack([c.odometry for c in others])
+        other_estimate = np.stack([c.estimate for c in others])
+        separated = np.hypot(*(other_odometry[:, :2] - odometry[:2]).T) >= min_separation_m
+        predicted = compose_planar(other_estimate, relative_planar(other_odometry, odometry))
+        position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
+        yaw_gap = np.degrees(np.abs(wrap_angle(predicted[:, 2] - estimate[2])))
+        return separated & (position_gap <= self.search.consistency_tolerance_m) \
+            & (yaw_gap <= self.search.consistency_tolerance_deg)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
                 ) -> tuple[int, list[Any]]:
-        """(earlier candidates agreeing with this one, keys of the earlier unconfirmed ones
-        that this agreement confirms); the current one is then remembered as a candidate."""
+        """(earlier candidates agreeing with this one, keys of the earlier matches that this
+        agreement confirms or, once a candidate is confirmed, that it vouches for); the current
+        one is then remembered as a candidate."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
-        agreeing: list[_Candidate] = []
-        if self._candidates:
-            earlier_odometry = np.stack([c.odometry for c in self._candidates])
-            earlier_estimate = np.stack([c.estimate for c in self._candidates])
-            separated = np.hypot(*(earlier_odometry[:, :2] - odometry[:2]).T) >= \
-                self.min_separation_m
-            predicted = compose_planar(earlier_estimate,
-                                       relative_planar(earlier_odometry, odometry))
-            position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
-            yaw_gap = np.degrees(np.abs(wrap_angle(predicted[:, 2] - estimate[2])))
-            agree = separated & (position_gap <= self.search.consistency_tolerance_m) \
-                & (yaw_gap <= self.search.consistency_tolerance_deg)
-            agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
-        confirmed = []
+        agree = self._agreeing(self._candidates, odometry, estimate, self.min_separation_m)
+        agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
+        newly_confirmed = []
         for candidate in agreeing:
             candidate.support += 1
             if not candidate.confirmed and candidate.support >= needed:
                 candidate.confirmed = True
-                confirmed.append(candidate.key)
+                newly_confirmed.append(candidate)
         count = len(agreeing)
-        self._candidates.append(_Candidate(odometry, estimate, self.travelled_m, key, count,
-                                           count >= needed))
+        current = _Candidate(odometry, estimate, self.travelled_m, key, count, count >= needed)
+        self._candidates.append(current)
+        if current.confirmed:
+            newly_confirmed.append(current)
+        confirmed = [c.key for c in newly_confirmed if c is not current]
+        if self.search.consistency_vouch:
+            for anchor in newly_confirmed:
+                confirmed.extend(self._vouch_from(anchor))
         return count, confirmed
+
+    def _vouch_from(self, anchor: _Candidate) -> list[Any]:
+        """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
+        (they are published and forgotten)."""
+        vouched, still_waiting = [], deque()
+        for waiting in self._awaiting_vouch:
+            if self._agreeing([anchor], waiting.odometry, waiting.estimate, 0.0)[0]:
+                vouched.append(waiting.key)
+            else:
+                still_waiting.append(waiting)
+        self._awaiting_vouch = still_waiting
+        return vouched
+
+    def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None) -> bool:
+        """Whether a confirmed candidate in the window agrees with this match; when none does,
+        it is kept in case a later confirmed candidate will."""
+        odometry = np.asarray(odometry, dtype=np.float64)
+        estimate = np.asarray(estimate, dtype=np.float64)
+        confirmed = [c for c in self._candidates if c.confirmed]
+        if self._agreeing(confirmed, odometry, estimate, 0.0).any():
+            return True
+        self._awaiting_vouch.append(_Candidate(odometry, estimate, self.travelled_m, key, -1,
+                                               False))
+        return False
 
 
 def distinct(match: MatchResult, search: SearchParams) -> bool:
@@ -162,7 +227,7 @@ class MatchVerifier:
         """The verdict on one query's match (None: nothing to match against). fitness_of runs
         the geometric verification (ICP) and is called only when the cheap tests pass. key
         names this query to later verdicts: Verdict.confirms lists the keys of earlier
-        candidates that this match's agreement confirms (publish them now)."""
+        matches that this match's agreement confirms or vouches for (publish them now)."""
         if self.consistency_active:
             if odometry is None:
                 raise ValueError("odometry consistency is on (search.consistency_min_support > "
@@ -177,13 +242,12 @@ class MatchVerifier:
                            f"{search.min_confidence}")
         if match.score < self.min_score:
             reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
-        if not distinct(match, search):
-            reasons.append(f"distinctiveness {match.distinctiveness:.3f} < min_distinctiveness "
-                           f"{search.min_distinctiveness}"
-                           + (f" and local {match.local_distinctiveness:.3f} < "
-                              f"min_local_distinctiveness {search.min_local_distinctiveness}"
-                              if search.min_local_distinctiveness > 0 else ""))
-        if reasons:
+        indistinct = not distinct(match, search)
+        if indistinct:
+            reasons.append(self._indistinct_reason(match))
+        a_vouch_may_save = (indistinct and len(reasons) == 1 and self.consistency_active
+                            and search.consistency_vouch)
+        if reasons and not a_vouch_may_save:
             return Verdict(False, "; ".join(reasons))
         fitness = math.nan
         if search.verify_fitness > 0:
@@ -194,6 +258,11 @@ class MatchVerifier:
             if not fitness >= search.verify_fitness:
                 return Verdict(False, f"ICP fitness {fitness:.3f} < verify_fitness "
                                       f"{search.verify_fitness}", fitness)
+        if indistinct:
+            if self.consistency.vouched(odometry, match.pose, key):
+                return Verdict(True, VOUCHED, fitness)
+            return Verdict(False, f"{self._indistinct_reason(match)}; {AWAITING_VOUCH}",
+                           fitness, awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
         support, confirms = self.consistency.support(odometry, match.pose, key)
@@ -202,3 +271,11 @@ class MatchVerifier:
                                   f"consistency_min_support is {search.consistency_min_support}",
                            fitness, support, confirms)
         return Verdict(True, "accepted", fitness, support, confirms)
+
+    def _indistinct_reason(self, match: MatchResult) -> str:
+        search = self.search
+        return (f"distinctiveness {match.distinctiveness:.3f} < min_distinctiveness "
+                f"{search.min_distinctiveness}"
+                + (f" and local {match.local_distinctiveness:.3f} < min_local_distinctiveness "
+                   f"{search.min_local_distinctiveness}"
+                   if search.min_local_distinctiveness > 0 else ""))

@@ -26,7 +26,7 @@ from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
 from mf_lpr_ros.core.pose import planar, planar_error
 from mf_lpr_ros.core.references import select_references
-from mf_lpr_ros.core.verification import CONFIRMED_LATER
+from mf_lpr_ros.core.verification import reason_when_confirmed
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.evaluation.methods import make_method
@@ -205,7 +205,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             reason=retrieval.reason))
         for earlier in retrieval.confirms:
             records[earlier].published = True
-            records[earlier].reason = CONFIRMED_LATER
+            records[earlier].reason = reason_when_confirmed(records[earlier].reason)
     return records
 
 

@@ -17,7 +17,7 @@ from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
-from mf_lpr_ros.core.verification import CONFIRMED_LATER, MatchVerifier
+from mf_lpr_ros.core.verification import MatchVerifier, reason_when_confirmed
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
@@ -166,7 +166,7 @@ class Localiser:
                            n_active, float(self.map.stamps[match.reference_index]),
                            verdict.fitness, verdict.support, timings, described_from, complete)
         result.confirms = self._confirmed(verdict.confirms)
-        if verdict.candidate and not verdict.accepted:
+        if verdict.may_be_confirmed:
             self._unconfirmed[stamp] = result
             while len(self._unconfirmed) > _UNCONFIRMED_KEPT:
                 self._unconfirmed.popitem(last=False)
@@ -178,7 +178,7 @@ class Localiser:
         for stamp in stamps:
             earlier = self._unconfirmed.pop(stamp, None)
             if earlier is not None:
-                earlier.accepted, earlier.reason = True, CONFIRMED_LATER
+                earlier.accepted, earlier.reason = True, reason_when_confirmed(earlier.reason)
                 confirmed.append(earlier)
         return confirmed
 

@@ -11,7 +11,13 @@ from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import compose_planar
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
-from mf_lpr_ros.core.verification import MatchVerifier
+from mf_lpr_ros.core.verification import (
+    AWAITING_VOUCH,
+    CONFIRMED_LATER,
+    VOUCHED,
+    MatchVerifier,
+    confirmed_later,
+)
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.sim.synthetic import scan_world
 
@@ -204,6 +210,99 @@ def test_matches_of_overlapping_submaps_do_not_support_each_other():
     verdicts = [verifier.verify(_match(pose), odo) for odo, pose in zip(odometry, truth)]
     assert all(v.accepted for v in verdicts[4:])
     assert verdicts[-1].support == 9           # every earlier match 3 m or more back
+
+
+INDISTINCT = 0.05
+MAP_T_ODOM = np.array([100.0, -20.0, 0.7])
+
+
+def _revisit(indistinct: dict[int, np.ndarray], n: int = 12, search: SearchParams | None = None):
+    """Verdicts on a revisit of n matches, each true (0.2 m off) but those in indistinct, which
+    fail distinctiveness alone and are off by the given (x, y, yaw) from the truth."""
+    verifier = MatchVerifier(search or SearchParams(consistency_min_support=2))
+    odometry = _drive(n)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    verdicts = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        if index in indistinct:
+            match = _match(pose + indistinct[index], distinctiveness=INDISTINCT,
+                           local_distinctiveness=INDISTINCT)
+        else:
+            match = _match(pose + [0.2, -0.1, 0.01])
+        verdicts.append(verifier.verify(match, odo, key=index))
+    return verdicts
+
+
+def test_a_confirmed_closure_vouches_for_agreeing_indistinct_matches_on_time_and_late():
+    right, wrong = np.array([0.3, 0.2, 0.02]), np.array([15.0, 4.0, 0.5])
+    verdicts = _revisit({1: right, 8: right, 9: wrong})
+    # 1 comes before any closure is confirmed: it waits, and the match that confirms the
+    # revisit's first candidates (3 confirms 0 and 2) vouches for it too.
+    assert not verdicts[1].accepted and verdicts[1].may_be_confirmed
+    assert verdicts[1].reason.endswith(AWAITING_VOUCH)
+    assert verdicts[3].accepted and sorted(verdicts[3].confirms) == [0, 1, 2]
+    assert confirmed_later(verdicts[1]).reason == VOUCHED
+    assert confirmed_later(verdicts[0]).reason == CONFIRMED_LATER
+    # 8 comes after: vouched for on time. It is no candidate and supports no one: 10's
+    # support is 7's and 7 itself.
+    assert verdicts[8].accepted and verdicts[8].reason == VOUCHED and not verdicts[8].candidate
+    assert verdicts[10].support == verdicts[7].support + 1
+    # 9 lands 15 m from where the revisit puts it: nothing vouches for it, then or later.
+    assert not verdicts[9].accepted
+    assert all(9 not in v.confirms for v in verdicts)
+
+
+def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches():
+    verdicts = _revisit({1: np.array([15.0, 4.0, 0.5]), 2: np.array([0.3, 0.2, 0.02])})
+    confirms = [key for v in verdicts for key in v.confirms]
+    assert 2 in confirms and 1 not in confirms
+    assert verdicts[1].may_be_confirmed and verdicts[2].may_be_confirmed
+
+
+def test_without_a_confirmed_closure_indistinct_matches_publish_nothing():
+    """A look-alike street driven along agrees with the odometry all the way, and never with a
+    closure confirmed on distinct matches: it stays unpublished however long it is."""
+    verdicts = _revisit({index: np.array([40.0, 0.0, 0.0]) for index in range(12)})
+    assert not any(v.accepted or v.confirms for v in verdicts)
+    assert all(v.reason.endswith(AWAITING_VOUCH) for v in verdicts)
+
+
+def test_a_vouched_match_vouches_for_no_other():
+    """Agreement cannot creep: 6 is vouched for (1.2 m off where the revisit puts it), 7 agrees
+    with 6 but lies 2.4 m off, outside the tolerance of the confirmed closures."""
+    search = SearchParams(consistency_min_support=2, consistency_tolerance_m=1.5)
+    verdicts = _revisit({6: np.array([1.2, 0.0, 0.0]), 7: np.array([2.4, 0.0, 0.0])},
+                        search=search)
+    assert verdicts[6].accepted and verdicts[6].reason == VOUCHED
+    assert not verdicts[7].accepted
+    assert all(7 not in v.confirms for v in verdicts)
+
+
+@pytest.mark.parametrize("change", ["vouch off", "weak", "window"])
+def test_a_vouch_needs_the_setting_a_confident_match_and_a_closure_within_the_window(change):
+    right = np.array([0.3, 0.2, 0.02])
+    search = SearchParams(consistency_min_support=2, consistency_vouch=change != "vouch off",
+                          consistency_window_m=6.0 if change == "window" else 30.0)
+    verifier = MatchVerifier(search)
+    odometry = _drive(12)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    for odo, pose in zip(odometry[:4], truth[:4]):
+        verifier.verify(_match(pose + [0.2, -0.1, 0.01]), odo)
+    for odo in odometry[4:10]:                         # 9 m travelled without a match
+        verifier.verify(None, odo)
+    confidence = 0.3 if change == "weak" else 0.8
+    verdict = verifier.verify(_match(truth[10] + right, confidence=confidence,
+                                     distinctiveness=INDISTINCT,
+                                     local_distinctiveness=INDISTINCT), odometry[10])
+    assert not verdict.accepted and "distinctiveness" in verdict.reason
+    assert verdict.may_be_confirmed is (change == "window")
+    control = MatchVerifier(SearchParams(consistency_min_support=2))
+    for odo, pose in zip(odometry[:4], truth[:4]):
+        control.verify(_match(pose + [0.2, -0.1, 0.01]), odo)
+    for odo in odometry[4:10]:
+        control.verify(None, odo)
+    assert control.verify(_match(truth[10] + right, distinctiveness=INDISTINCT,
+                                 local_distinctiveness=INDISTINCT), odometry[10]).accepted
 
 
 def test_support_expires_after_the_travel_window():
