@@ -69,8 +69,6 @@ class Verdict:
 
 CONFIRMED_LATER = "accepted: confirmed by later matches"
 VOUCHED = "accepted: a confirmed closure vouches for it"
-
-
 AWAITING_VOUCH = "no confirmed closure vouches for it yet"
 
 

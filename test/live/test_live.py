@@ -11,6 +11,7 @@ import pytest
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.verification import VOUCHED
 from mf_lpr_ros.errors import InvalidPoseError, MapParameterMismatch
 from mf_lpr_ros.live.localiser import Localiser, relocalised_pose
 from mf_lpr_ros.live.map_builder import MapBuilder
@@ -145,6 +146,35 @@ def test_loop_closure_localiser_only_searches_old_enough_references(world):
     assert results[22].confirms == [results[20], results[21]]
     assert all(r.accepted and "confirmed by later" in r.reason for r in results[20:22])
     assert not any(r.confirms for r in results[:22])
+
+
+def test_a_revisit_that_starts_at_a_look_alike_place_is_published_once_a_closure_vouches(world):
+    """The loop's first place is stored twice, the second time 85 m away with 5 % of its points
+    gone: the revisit's first match there is right but not distinct. It waits, and is
+    published late, when the revisit's next matches confirm a closure that agrees with it. The
+    scan before it, which matched the look-alike copy, is never published."""
+    rng = np.random.default_rng(5)
+    localiser = Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="loop_closure",
+                          exclude_recent_s=10.0)
+    trajectory = route(40)
+    results, accepted_on_arrival = [], []
+    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:5]])):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        results.append(localiser.localise(float(index), points, pose))
+        accepted_on_arrival.append(results[-1].accepted)
+        localiser.add_reference(PairedScan(index, float(index), points, pose))
+        if index == 0:
+            elsewhere = pose.copy()
+            elsewhere[:2, 3] += [60.0, 60.0]
+            thinned = points[rng.random(len(points)) > 0.05]
+            localiser.add_reference(PairedScan(index, 0.5, thinned, elsewhere))
+    first = results[40]
+    assert first.match.reference_index == 0 and first.match.distinctiveness < 0.15
+    assert not accepted_on_arrival[40] and first.accepted and first.reason == VOUCHED
+    assert any(first in later.confirms for later in results[41:])
+    look_alike = results[39]
+    assert look_alike.match.reference_index == 1 and not look_alike.accepted
+    assert not any(look_alike in later.confirms for later in results)
 
 
 def test_localiser_refuses_a_map_with_other_parameters(world):
