@@ -105,8 +105,8 @@ def test_local_distinctiveness_is_only_computed_when_the_global_test_fails(world
 
 
 def _match(pose, confidence=0.8, distinctiveness=0.8,
-           local_distinctiveness=math.nan) -> MatchResult:
-    return MatchResult(reference_index=0, score=1.0, confidence=confidence,
+           local_distinctiveness=math.nan, score=1.0) -> MatchResult:
+    return MatchResult(reference_index=0, score=score, confidence=confidence,
                        shift_m=np.zeros(2), rotation_rad=0.0, pose=np.asarray(pose, float),
                        covariance=np.eye(3), relative_covariance=np.eye(3),
                        candidates=np.zeros(1, int), distinctiveness=distinctiveness,
@@ -214,32 +214,39 @@ def test_matches_of_overlapping_submaps_do_not_support_each_other():
 
 INDISTINCT = 0.05
 MAP_T_ODOM = np.array([100.0, -20.0, 0.7])
+DOUBTS = {"indistinct": {"distinctiveness": INDISTINCT, "local_distinctiveness": INDISTINCT},
+          "weak": {"confidence": 0.2},
+          "weak and indistinct": {"confidence": 0.2, "distinctiveness": INDISTINCT,
+                                  "local_distinctiveness": INDISTINCT}}
 
 
-def _revisit(indistinct: dict[int, np.ndarray], n: int = 12, search: SearchParams | None = None):
-    """Verdicts on a revisit of n matches, each true (0.2 m off) but those in indistinct, which
-    fail distinctiveness alone and are off by the given (x, y, yaw) from the truth."""
+def _revisit(doubtful: dict[int, np.ndarray], n: int = 12, search: SearchParams | None = None,
+             doubt: str = "indistinct"):
+    """Verdicts on a revisit of n matches, each true (0.2 m off) but those in doubtful, which
+    fail the tests DOUBTS[doubt] names and are off by the given (x, y, yaw) from the truth."""
     verifier = MatchVerifier(search or SearchParams(consistency_min_support=2))
     odometry = _drive(n)
     truth = compose_planar(MAP_T_ODOM, odometry)
     verdicts = []
     for index, (odo, pose) in enumerate(zip(odometry, truth)):
-        if index in indistinct:
-            match = _match(pose + indistinct[index], distinctiveness=INDISTINCT,
-                           local_distinctiveness=INDISTINCT)
+        if index in doubtful:
+            match = _match(pose + doubtful[index], **DOUBTS[doubt])
         else:
             match = _match(pose + [0.2, -0.1, 0.01])
         verdicts.append(verifier.verify(match, odo, key=index))
     return verdicts
 
 
-def test_a_confirmed_closure_vouches_for_agreeing_indistinct_matches_on_time_and_late():
+@pytest.mark.parametrize("doubt", sorted(DOUBTS))
+def test_a_confirmed_closure_vouches_for_agreeing_doubtful_matches_on_time_and_late(doubt):
     right, wrong = np.array([0.3, 0.2, 0.02]), np.array([15.0, 4.0, 0.5])
-    verdicts = _revisit({1: right, 8: right, 9: wrong})
+    verdicts = _revisit({1: right, 8: right, 9: wrong}, doubt=doubt)
     # 1 comes before any closure is confirmed: it waits, and the match that confirms the
     # revisit's first candidates (3 confirms 0 and 2) vouches for it too.
     assert not verdicts[1].accepted and verdicts[1].may_be_confirmed
     assert verdicts[1].reason.endswith(AWAITING_VOUCH)
+    assert ("confidence 0.200" in verdicts[1].reason) is ("weak" in doubt)
+    assert ("distinctiveness 0.050" in verdicts[1].reason) is ("indistinct" in doubt)
     assert verdicts[3].accepted and sorted(verdicts[3].confirms) == [0, 1, 2]
     assert confirmed_later(verdicts[1]).reason == VOUCHED
     assert confirmed_later(verdicts[0]).reason == CONFIRMED_LATER
@@ -259,10 +266,12 @@ def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches()
     assert verdicts[1].may_be_confirmed and verdicts[2].may_be_confirmed
 
 
-def test_without_a_confirmed_closure_indistinct_matches_publish_nothing():
+@pytest.mark.parametrize("doubt", sorted(DOUBTS))
+def test_without_a_confirmed_closure_doubtful_matches_publish_nothing(doubt):
     """A look-alike street driven along agrees with the odometry all the way, and never with a
-    closure confirmed on distinct matches: it stays unpublished however long it is."""
-    verdicts = _revisit({index: np.array([40.0, 0.0, 0.0]) for index in range(12)})
+    closure confirmed on distinct, confident matches: it stays unpublished however long it is."""
+    verdicts = _revisit({index: np.array([40.0, 0.0, 0.0]) for index in range(12)},
+                        doubt=doubt)
     assert not any(v.accepted or v.confirms for v in verdicts)
     assert all(v.reason.endswith(AWAITING_VOUCH) for v in verdicts)
 
@@ -278,31 +287,35 @@ def test_a_vouched_match_vouches_for_no_other():
     assert all(7 not in v.confirms for v in verdicts)
 
 
-@pytest.mark.parametrize("change", ["vouch off", "weak", "window"])
-def test_a_vouch_needs_the_setting_a_confident_match_and_a_closure_within_the_window(change):
-    right = np.array([0.3, 0.2, 0.02])
-    search = SearchParams(consistency_min_support=2, consistency_vouch=change != "vouch off",
-                          consistency_window_m=6.0 if change == "window" else 30.0)
-    verifier = MatchVerifier(search)
-    odometry = _drive(12)
-    truth = compose_planar(MAP_T_ODOM, odometry)
-    for odo, pose in zip(odometry[:4], truth[:4]):
-        verifier.verify(_match(pose + [0.2, -0.1, 0.01]), odo)
-    for odo in odometry[4:10]:                         # 9 m travelled without a match
-        verifier.verify(None, odo)
-    confidence = 0.3 if change == "weak" else 0.8
-    verdict = verifier.verify(_match(truth[10] + right, confidence=confidence,
-                                     distinctiveness=INDISTINCT,
-                                     local_distinctiveness=INDISTINCT), odometry[10])
-    assert not verdict.accepted and "distinctiveness" in verdict.reason
-    assert verdict.may_be_confirmed is (change == "window")
-    control = MatchVerifier(SearchParams(consistency_min_support=2))
-    for odo, pose in zip(odometry[:4], truth[:4]):
-        control.verify(_match(pose + [0.2, -0.1, 0.01]), odo)
-    for odo in odometry[4:10]:
-        control.verify(None, odo)
-    assert control.verify(_match(truth[10] + right, distinctiveness=INDISTINCT,
-                                 local_distinctiveness=INDISTINCT), odometry[10]).accepted
+@pytest.mark.parametrize("change", ["vouch off", "min_score", "icp", "window"])
+def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window(change):
+    """A right but indistinct match 9 m after a confirmed revisit is vouched for unless one of
+    these changes: the setting off, a score under the caller's min_score, an ICP fitness under
+    verify_fitness, or a travel window shorter than the 9 m (it then waits)."""
+    def verdict_after_a_confirmed_revisit(change: str):
+        search = SearchParams(consistency_min_support=2, consistency_vouch=change != "vouch off",
+                              consistency_window_m=6.0 if change == "window" else 30.0,
+                              verify_fitness=0.6 if change == "icp" else 0.0)
+        verifier = MatchVerifier(search, min_score=2.0 if change == "min_score" else 0.0)
+        odometry = _drive(12)
+        truth = compose_planar(MAP_T_ODOM, odometry)
+
+        def fitness(match):
+            return 0.5 if change == "icp" and match.distinctiveness < 0.15 else 0.9
+        for odo, pose in zip(odometry[:4], truth[:4]):
+            assert not verifier.verify(_match(pose + [0.2, -0.1, 0.01], score=3.0), odo,
+                                       fitness).reason.startswith(("score", "ICP"))
+        for odo in odometry[4:10]:                     # 9 m travelled without a match
+            verifier.verify(None, odo)
+        return verifier.verify(_match(truth[10] + [0.3, 0.2, 0.02], **DOUBTS["indistinct"]),
+                               odometry[10], fitness)
+
+    assert verdict_after_a_confirmed_revisit("none").accepted
+    verdict = verdict_after_a_confirmed_revisit(change)
+    assert not verdict.accepted and verdict.may_be_confirmed is (change == "window")
+    expected = {"vouch off": "distinctiveness", "min_score": "min_score", "icp": "ICP fitness",
+                "window": AWAITING_VOUCH}[change]
+    assert expected in verdict.reason
 
 
 def test_support_expires_after_the_travel_window():
