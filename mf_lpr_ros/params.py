@@ -222,12 +222,14 @@ class SearchParams:
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
     consistency_vouch: a confirmed closure vouches for the matches within consistency_window_m
-        of it on the path that fail min_confidence or min_distinctiveness (not ICP) and agree
-        with it (as above, without the separation): they are published, on time or late.
-        Those tests guard against a weak match and a look-alike place; a match that lands where
-        odometry and an independently confirmed closure put the query is neither. Only
-        confirmed candidates vouch, so agreement cannot creep along a road from one vouched
-        match to the next (core/verification.py; docs/RESULTS.md, session 20).
+        of it on the path that fail min_distinctiveness alone and agree with it (as above,
+        without the separation): they are published, on time or late. Distinctiveness guards
+        against a look-alike place; a match that lands where odometry and an independently
+        confirmed closure put the query is not one. Only confirmed candidates vouch, so
+        agreement cannot creep along a road from one vouched match to the next. A weak match
+        (under min_confidence) is never vouched for: its pose is less precise, and on held-out
+        data a vouched weak match's pose lay 3 m off (core/verification.py; docs/RESULTS.md,
+        session 20).
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too

@@ -22,14 +22,12 @@ it then: a pose graph takes a closure late as well as on time). So the first mat
 revisit are published too, on the same evidence as the ones after them.
 
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
-fail confidence or distinctiveness (not the caller's min_score, not ICP): such a match is
-published when it agrees with a confirmed candidate within consistency_window_m of travel,
-earlier or later. Those two tests ask whether the match alone can be trusted: whether it is
-strong enough, and whether another place looks as alike. Once odometry and an independently
-confirmed closure put the query there, a match that lands within consistency_tolerance_m of
-where they predict is that place, however weak or however alike another looks. Only confirmed
-candidates vouch, never a vouched match, so agreement cannot creep along a road from one
-vouched match to the next.
+fail distinctiveness alone: such a match is published when it agrees with a confirmed candidate
+within consistency_window_m of travel, earlier or later. Distinctiveness asks whether another
+place looks as alike; once odometry and an independently confirmed closure put the query there,
+a match that lands within consistency_tolerance_m of where they predict is that place, however
+alike another looks. Only confirmed candidates vouch, never a vouched match, so agreement
+cannot creep along a road from one vouched match to the next.
 """
 
 from __future__ import annotations
@@ -49,8 +47,7 @@ from mf_lpr_ros.params import SearchParams
 @dataclass
 class Verdict:
     """Whether a match is published, why not, and what the tests measured. awaiting_vouch: it
-    failed confidence or distinctiveness only, and a later confirmed closure may still vouch for
-    it."""
+    failed distinctiveness alone, and a later confirmed closure may still vouch for it."""
 
     accepted: bool
     reason: str
@@ -237,19 +234,19 @@ class MatchVerifier:
         if match is None:
             return Verdict(False, "no reference to search yet")
         search = self.search
-        # What a confirmed closure may vouch for: a weak or indistinct match, never one under
-        # the caller's min_score or the ICP test.
-        vouchable = []
+        reasons = []
         if match.confidence < search.min_confidence:
-            vouchable.append(f"confidence {match.confidence:.3f} < min_confidence "
-                             f"{search.min_confidence}")
-        if not distinct(match, search):
-            vouchable.append(self._indistinct_reason(match))
+            reasons.append(f"confidence {match.confidence:.3f} < min_confidence "
+                           f"{search.min_confidence}")
         if match.score < self.min_score:
-            return Verdict(False, "; ".join(
-                vouchable + [f"score {match.score:.4g} < min_score {self.min_score}"]))
-        if vouchable and not (self.consistency_active and search.consistency_vouch):
-            return Verdict(False, "; ".join(vouchable))
+            reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
+        indistinct = not distinct(match, search)
+        if indistinct:
+            reasons.append(self._indistinct_reason(match))
+        a_vouch_may_save = (indistinct and len(reasons) == 1 and self.consistency_active
+                            and search.consistency_vouch)
+        if reasons and not a_vouch_may_save:
+            return Verdict(False, "; ".join(reasons))
         fitness = math.nan
         if search.verify_fitness > 0:
             if fitness_of is None:
@@ -259,11 +256,11 @@ class MatchVerifier:
             if not fitness >= search.verify_fitness:
                 return Verdict(False, f"ICP fitness {fitness:.3f} < verify_fitness "
                                       f"{search.verify_fitness}", fitness)
-        if vouchable:
+        if indistinct:
             if self.consistency.vouched(odometry, match.pose, key):
                 return Verdict(True, VOUCHED, fitness)
-            return Verdict(False, f"{'; '.join(vouchable)}; {AWAITING_VOUCH}", fitness,
-                           awaiting_vouch=True)
+            return Verdict(False, f"{self._indistinct_reason(match)}; {AWAITING_VOUCH}",
+                           fitness, awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
         support, confirms = self.consistency.support(odometry, match.pose, key)

@@ -237,16 +237,13 @@ def _revisit(doubtful: dict[int, np.ndarray], n: int = 12, search: SearchParams 
     return verdicts
 
 
-@pytest.mark.parametrize("doubt", sorted(DOUBTS))
-def test_a_confirmed_closure_vouches_for_agreeing_doubtful_matches_on_time_and_late(doubt):
+def test_a_confirmed_closure_vouches_for_agreeing_indistinct_matches_on_time_and_late():
     right, wrong = np.array([0.3, 0.2, 0.02]), np.array([15.0, 4.0, 0.5])
-    verdicts = _revisit({1: right, 8: right, 9: wrong}, doubt=doubt)
+    verdicts = _revisit({1: right, 8: right, 9: wrong})
     # 1 comes before any closure is confirmed: it waits, and the match that confirms the
     # revisit's first candidates (3 confirms 0 and 2) vouches for it too.
     assert not verdicts[1].accepted and verdicts[1].may_be_confirmed
     assert verdicts[1].reason.endswith(AWAITING_VOUCH)
-    assert ("confidence 0.200" in verdicts[1].reason) is ("weak" in doubt)
-    assert ("distinctiveness 0.050" in verdicts[1].reason) is ("indistinct" in doubt)
     assert verdicts[3].accepted and sorted(verdicts[3].confirms) == [0, 1, 2]
     assert confirmed_later(verdicts[1]).reason == VOUCHED
     assert confirmed_later(verdicts[0]).reason == CONFIRMED_LATER
@@ -259,6 +256,20 @@ def test_a_confirmed_closure_vouches_for_agreeing_doubtful_matches_on_time_and_l
     assert all(9 not in v.confirms for v in verdicts)
 
 
+@pytest.mark.parametrize("doubt", ["weak", "weak and indistinct"])
+def test_a_weak_match_is_never_vouched_for(doubt):
+    """Under min_confidence a match's pose is less precise (on held-out data a vouched weak
+    match lay 3 m off): agreeing with the revisit, on time or before it is confirmed, it still
+    stays unpublished, and its reason says why."""
+    right = np.array([0.3, 0.2, 0.02])
+    verdicts = _revisit({1: right, 8: right}, doubt=doubt)
+    assert verdicts[3].accepted and not verdicts[8].accepted
+    for index in (1, 8):
+        assert not verdicts[index].may_be_confirmed
+        assert verdicts[index].reason.startswith("confidence 0.200 < min_confidence")
+        assert all(index not in v.confirms for v in verdicts)
+
+
 def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches():
     verdicts = _revisit({1: np.array([15.0, 4.0, 0.5]), 2: np.array([0.3, 0.2, 0.02])})
     confirms = [key for v in verdicts for key in v.confirms]
@@ -266,12 +277,10 @@ def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches()
     assert verdicts[1].may_be_confirmed and verdicts[2].may_be_confirmed
 
 
-@pytest.mark.parametrize("doubt", sorted(DOUBTS))
-def test_without_a_confirmed_closure_doubtful_matches_publish_nothing(doubt):
+def test_without_a_confirmed_closure_indistinct_matches_publish_nothing():
     """A look-alike street driven along agrees with the odometry all the way, and never with a
-    closure confirmed on distinct, confident matches: it stays unpublished however long it is."""
-    verdicts = _revisit({index: np.array([40.0, 0.0, 0.0]) for index in range(12)},
-                        doubt=doubt)
+    closure confirmed on distinct matches: it stays unpublished however long it is."""
+    verdicts = _revisit({index: np.array([40.0, 0.0, 0.0]) for index in range(12)})
     assert not any(v.accepted or v.confirms for v in verdicts)
     assert all(v.reason.endswith(AWAITING_VOUCH) for v in verdicts)
 
