@@ -122,17 +122,29 @@ def test_a_map_keeps_the_clouds_its_verification_needs(world, tmp_path):
     assert build_map(sequence, preset("kitti"), keep_clouds=True, progress=False).has_clouds
 
 
-def test_loop_closure_localiser_only_searches_old_enough_references(world):
+def _loop_closure_run(world, trajectory: np.ndarray, revisited: int, extra_reference=None):
+    """A loop_closure localiser (references 10 s old or more) fed the trajectory and then its
+    first `revisited` places again, each scan added as a reference after its search;
+    extra_reference(index, points, pose, rng) may return one more PairedScan to add after it.
+    Returns the results and whether each was accepted when it came."""
     rng = np.random.default_rng(5)
     localiser = Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="loop_closure",
                           exclude_recent_s=10.0)
-    trajectory = route(20)
     results, accepted_on_arrival = [], []
-    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:3]])):
+    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:revisited]])):
         points, pose = scan_world(world, x, y, yaw, rng)
         results.append(localiser.localise(float(index), points, pose))
         accepted_on_arrival.append(results[-1].accepted)
         localiser.add_reference(PairedScan(index, float(index), points, pose))
+        extra = extra_reference(index, points, pose, rng) if extra_reference else None
+        if extra is not None:
+            localiser.add_reference(extra)
+    return results, accepted_on_arrival
+
+
+def test_loop_closure_localiser_only_searches_old_enough_references(world):
+    trajectory = route(20)
+    results, accepted_on_arrival = _loop_closure_run(world, trajectory, 3)
     assert results[0].match is None and results[0].reason == "no reference to search yet"
     assert all(r.references_searched == max(0, i - 10 + 1) for i, r in enumerate(results))
     # The revisit's first two matches are right but wait for odometry support (two agreeing
@@ -153,21 +165,15 @@ def test_a_revisit_that_starts_at_a_look_alike_place_is_published_once_a_closure
     gone: the revisit's first match there is right but not distinct. It waits, and is
     published late, when the revisit's next matches confirm a closure that agrees with it. The
     scan before it, which matched the look-alike copy, is never published."""
-    rng = np.random.default_rng(5)
-    localiser = Localiser(ReferenceMap(CONFIG.descriptor), CONFIG, mode="loop_closure",
-                          exclude_recent_s=10.0)
-    trajectory = route(40)
-    results, accepted_on_arrival = [], []
-    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:5]])):
-        points, pose = scan_world(world, x, y, yaw, rng)
-        results.append(localiser.localise(float(index), points, pose))
-        accepted_on_arrival.append(results[-1].accepted)
-        localiser.add_reference(PairedScan(index, float(index), points, pose))
-        if index == 0:
-            elsewhere = pose.copy()
-            elsewhere[:2, 3] += [60.0, 60.0]
-            thinned = points[rng.random(len(points)) > 0.05]
-            localiser.add_reference(PairedScan(index, 0.5, thinned, elsewhere))
+    def look_alike_of_the_first_place(index, points, pose, rng):
+        if index != 0:
+            return None
+        elsewhere = pose.copy()
+        elsewhere[:2, 3] += [60.0, 60.0]
+        return PairedScan(index, 0.5, points[rng.random(len(points)) > 0.05], elsewhere)
+
+    results, accepted_on_arrival = _loop_closure_run(world, route(40), 5,
+                                                     look_alike_of_the_first_place)
     first = results[40]
     assert first.match.reference_index == 0 and first.match.distinctiveness < 0.15
     assert not accepted_on_arrival[40] and first.accepted and first.reason == VOUCHED
