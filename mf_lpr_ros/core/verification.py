@@ -85,6 +85,12 @@ def reason_when_confirmed(reason: str) -> str:
     return VOUCHED if reason.endswith(AWAITING_VOUCH) else CONFIRMED_LATER
 
 
+# Matches kept per list (candidates, matches awaiting a vouch), newest first: the travel window
+# bounds them while the robot moves; this bounds them when it stands still (30 m at 10 Hz and
+# 0.15 m/s).
+MATCHES_KEPT = 2000
+
+
 @dataclass(eq=False)
 class _Candidate:
     odometry: np.ndarray
@@ -113,8 +119,8 @@ class OdometryConsistency:
                                  else min_separation_m)
         self.travelled_m = 0.0
         self._last_odometry: np.ndarray | None = None
-        self._candidates: deque[_Candidate] = deque()
-        self._awaiting_vouch: deque[_Candidate] = deque()
+        self._candidates: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
+        self._awaiting_vouch: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
 
     def advance(self, odometry: np.ndarray) -> None:
         """Record the odometry of a query (every query, matched or not): the window is travel."""
@@ -171,7 +177,7 @@ class OdometryConsistency:
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
         (they are published and forgotten)."""
-        vouched, still_waiting = [], deque()
+        vouched, still_waiting = [], deque(maxlen=MATCHES_KEPT)
         for waiting in self._awaiting_vouch:
             if self._agreeing([anchor], waiting.odometry, waiting.estimate, 0.0)[0]:
                 vouched.append(waiting.key)

@@ -17,14 +17,15 @@ from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
-from mf_lpr_ros.core.verification import MatchVerifier, reason_when_confirmed
+from mf_lpr_ros.core.verification import MATCHES_KEPT, MatchVerifier, reason_when_confirmed
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
 from mf_lpr_ros.optional import require
 from mf_lpr_ros.params import SearchParams
 
-_UNCONFIRMED_KEPT = 1000
+# As many as the verifier may still confirm: its candidates and the matches awaiting a vouch.
+_UNCONFIRMED_KEPT = 2 * MATCHES_KEPT
 
 
 @dataclass

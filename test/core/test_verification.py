@@ -14,6 +14,7 @@ from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.verification import (
     AWAITING_VOUCH,
     CONFIRMED_LATER,
+    MATCHES_KEPT,
     VOUCHED,
     MatchVerifier,
     confirmed_later,
@@ -189,6 +190,16 @@ def test_a_stationary_robot_repeating_a_false_match_gets_no_support():
     verdicts = [verifier.verify(_match(wrong), np.zeros(3)) for _ in range(10)]
     assert not any(v.accepted for v in verdicts)
     assert {v.support for v in verdicts} == {0}
+
+
+def test_a_robot_standing_still_keeps_a_bounded_number_of_matches():
+    """Travel bounds what odometry consistency keeps; standing still, so does MATCHES_KEPT."""
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2))
+    for index in range(2 * MATCHES_KEPT + 500):
+        doubt = DOUBTS["indistinct"] if index % 2 else {}
+        verifier.verify(_match(np.array([50.0, 50.0, 1.0]), **doubt), np.zeros(3), key=index)
+    assert len(verifier.consistency._candidates) == MATCHES_KEPT
+    assert len(verifier.consistency._awaiting_vouch) == MATCHES_KEPT
 
 
 def test_matches_of_overlapping_submaps_do_not_support_each_other():
