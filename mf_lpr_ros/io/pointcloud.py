@@ -49,8 +49,11 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
     records = np.ndarray(shape=(height, width), dtype=dtype, buffer=data,
                          strides=(row_stride, point_step))
     xyz = np.empty((height * width, 3), dtype=np.float32)
-    for column, axis in enumerate("xyz"):
-        xyz[:, column] = records[axis].ravel()
+    # A float64 coordinate beyond float32's range becomes inf, and is dropped with the other
+    # non-finite points below.
+    with np.errstate(over="ignore"):
+        for column, axis in enumerate("xyz"):
+            xyz[:, column] = records[axis].ravel()
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
