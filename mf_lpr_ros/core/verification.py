@@ -39,7 +39,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mf_lpr_ros.core.pose import compose_planar, relative_planar, wrap_angle
+from mf_lpr_ros.core.pose import compose_planar, planar_error, relative_planar
 from mf_lpr_ros.core.search import MatchResult
 from mf_lpr_ros.params import SearchParams
 
@@ -133,19 +133,24 @@ class OdometryConsistency:
             while kept and self.travelled_m - kept[0].travelled_m > window:
                 kept.popleft()
 
-    def _agreeing(self, others, odometry: np.ndarray, estimate: np.ndarray,
-                  min_separation_m: float) -> np.ndarray:
-        """Which of others imply, carried along the odometry to this query, its estimate."""
-        if not others:
-            return np.zeros(0, dtype=bool)
-        other_odometry = np.stack([c.odometry for c in others])
-        other_estimate = np.stack([c.estimate for c in others])
-        separated = np.hypot(*(other_odometry[:, :2] - odometry[:2]).T) >= min_separation_m
-        predicted = compose_planar(other_estimate, relative_planar(other_odometry, odometry))
-        position_gap = np.hypot(*(predicted[:, :2] - estimate[:2]).T)
-        yaw_gap = np.degrees(np.abs(wrap_angle(predicted[:, 2] - estimate[2])))
+    def _agreeing(self, earlier, later, min_separation_m: float) -> np.ndarray:
+        """Whether each earlier match's estimate, carried along the odometry to the later's,
+        lies within the tolerances of the later one's (either side one match or several,
+        broadcast), the two queries at least min_separation_m apart."""
+        def stacked(matches):
+            if isinstance(matches, _Candidate):
+                return matches.odometry, matches.estimate
+            return (np.stack([m.odometry for m in matches]),
+                    np.stack([m.estimate for m in matches]))
+        earlier_odometry, earlier_estimate = stacked(earlier)
+        later_odometry, later_estimate = stacked(later)
+        separated = np.hypot(*(earlier_odometry[..., :2] - later_odometry[..., :2]).T) \
+            >= min_separation_m
+        predicted = compose_planar(earlier_estimate,
+                                   relative_planar(earlier_odometry, later_odometry))
+        position_gap, yaw_gap_deg = planar_error(predicted, later_estimate)
         return separated & (position_gap <= self.search.consistency_tolerance_m) \
-            & (yaw_gap <= self.search.consistency_tolerance_deg)
+            & (yaw_gap_deg <= self.search.consistency_tolerance_deg)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
                 ) -> tuple[int, list[Any]]:
@@ -155,7 +160,9 @@ class OdometryConsistency:
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
-        agree = self._agreeing(self._candidates, odometry, estimate, self.min_separation_m)
+        current = _Candidate(odometry, estimate, self.travelled_m, key, 0, False)
+        agree = (self._agreeing(self._candidates, current, self.min_separation_m)
+                 if self._candidates else [])
         agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
         newly_confirmed = []
         for candidate in agreeing:
@@ -163,8 +170,8 @@ class OdometryConsistency:
             if not candidate.confirmed and candidate.support >= needed:
                 candidate.confirmed = True
                 newly_confirmed.append(candidate)
-        count = len(agreeing)
-        current = _Candidate(odometry, estimate, self.travelled_m, key, count, count >= needed)
+        current.support = count = len(agreeing)
+        current.confirmed = count >= needed
         self._candidates.append(current)
         if current.confirmed:
             newly_confirmed.append(current)
@@ -177,13 +184,12 @@ class OdometryConsistency:
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
         (they are published and forgotten)."""
-        vouched, still_waiting = [], deque(maxlen=MATCHES_KEPT)
-        for waiting in self._awaiting_vouch:
-            if self._agreeing([anchor], waiting.odometry, waiting.estimate, 0.0)[0]:
-                vouched.append(waiting.key)
-            else:
-                still_waiting.append(waiting)
-        self._awaiting_vouch = still_waiting
+        if not self._awaiting_vouch:
+            return []
+        agree = self._agreeing(anchor, self._awaiting_vouch, 0.0)
+        vouched = [m.key for m, agrees in zip(self._awaiting_vouch, agree) if agrees]
+        self._awaiting_vouch = deque((m for m, agrees in zip(self._awaiting_vouch, agree)
+                                      if not agrees), maxlen=MATCHES_KEPT)
         return vouched
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None) -> bool:
@@ -191,11 +197,11 @@ class OdometryConsistency:
         it is kept in case a later confirmed candidate will."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
+        match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False)
         confirmed = [c for c in self._candidates if c.confirmed]
-        if self._agreeing(confirmed, odometry, estimate, 0.0).any():
+        if confirmed and self._agreeing(confirmed, match, 0.0).any():
             return True
-        self._awaiting_vouch.append(_Candidate(odometry, estimate, self.travelled_m, key, -1,
-                                               False))
+        self._awaiting_vouch.append(match)
         return False
 
 
