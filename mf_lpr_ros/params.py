@@ -233,13 +233,16 @@ class SearchParams:
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too
-        and becomes the match when it scores within rerank_margin (a fraction) of the best
-        and implies the same query position within rerank_agreement_m. The pose barely
-        changes; the reported place is the nearest one (the keyframe a back end's own ICP
-        overlaps best). 0 = off. The default 0.05 was chosen on the whole tuning suite
-        (docs/RESULTS.md, "Default changes", session 15); an earlier re-ranking that also let a
-        less shifted finalist of another place win, tuned on KITTI 00 alone, lost 5.5 points
-        on held-out KITTI 02 and was removed.
+        and is reported as the match when its alignment scores within rerank_margin (a
+        fraction) of the best and implies the same query position within rerank_agreement_m:
+        the keyframe a back end's own ICP overlaps best. The pose, its covariance, the score
+        and the confidence stay the best alignment's (the constraint is re-expressed in the
+        nearer reference's frame), so what is published does not depend on it. 0 = off. The
+        agreement decides; the margin only refuses an alignment too weak to mean anything.
+        0.9 (0.05 before the evidence stayed the best's) was chosen on the whole tuning suite
+        (docs/RESULTS.md, "Default changes", sessions 15 and 21); an earlier re-ranking that
+        also let a less shifted finalist of another place win, tuned on KITTI 00 alone, lost
+        5.5 points on held-out KITTI 02 and was removed.
     query_footprint: the cells of the query that count. "window": the map's footprint (the
         disc or square, a field-of-view wedge), its unoccupied cells free space (w).
         "observed": only the cells the query has seen (in each direction, up to its farthest
@@ -285,7 +288,7 @@ class SearchParams:
     consistency_tolerance_m: float = 1.5
     consistency_tolerance_deg: float = 5.0
     consistency_vouch: bool = True
-    rerank_margin: float = 0.05
+    rerank_margin: float = 0.9
     rerank_agreement_m: float = 2.0
     query_footprint: str = "auto"
     global_yaw_window_deg: float = 10.0

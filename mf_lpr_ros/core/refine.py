@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mf_lpr_ros.core.pose import planar, query_pose_from_alignment
+from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, relative_planar
 from mf_lpr_ros.optional import require
 
 if TYPE_CHECKING:
@@ -67,16 +67,29 @@ def refine_with_icp(query_points: np.ndarray, reference_points: np.ndarray, shif
 
 def refine_match(match: "MatchResult", points: np.ndarray, reference_map: "ReferenceMap"
                  ) -> IcpRefinement:
-    """ICP of a match against its reference's stored cloud; updates the match's alignment and
-    pose in place when the refinement is kept, and records its time in match.timings_ms."""
+    """ICP of a match against the stored cloud of the reference its alignment was scored on
+    (MatchResult.scored_reference: what verification tests is the evidence, not the nearer
+    reference a re-ranking reports); updates the match's pose, and its alignment to the
+    reported reference, in place when the refinement is kept, and records its time in
+    match.timings_ms."""
     started = time.perf_counter()
     points = points[::max(1, -(-len(points) // MAX_QUERY_POINTS))]
-    refined = refine_with_icp(points, reference_map.cloud(match.reference_index), match.shift_m,
-                              match.rotation_rad,
+    scored = match.reference_index if match.scored_reference is None else match.scored_reference
+    scored_pose = planar(reference_map.poses[scored])
+    if scored == match.reference_index:
+        shift_m, rotation_rad = match.shift_m, match.rotation_rad
+    else:
+        relative = relative_planar(scored_pose, match.pose)
+        shift_m, rotation_rad = relative[:2], float(relative[2])
+    refined = refine_with_icp(points, reference_map.cloud(scored), shift_m, rotation_rad,
                               max_correspondence_m=2 * reference_map.params.voxel_size)
     if refined.accepted:
-        match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
-        match.pose = query_pose_from_alignment(planar(reference_map.poses[match.reference_index]),
-                                               refined.shift_m, refined.rotation_rad)
+        match.pose = query_pose_from_alignment(scored_pose, refined.shift_m, refined.rotation_rad)
+        if scored == match.reference_index:
+            match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
+        else:
+            relative = relative_planar(planar(reference_map.poses[match.reference_index]),
+                                       match.pose)
+            match.shift_m, match.rotation_rad = relative[:2], float(relative[2])
     match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
     return refined

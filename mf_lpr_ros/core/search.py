@@ -26,7 +26,12 @@ from mf_lpr_ros.core.descriptor import (
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.matched_filter import PreparedQueries
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
-from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, rotate_covariance
+from mf_lpr_ros.core.pose import (
+    planar,
+    query_pose_from_alignment,
+    relative_planar,
+    rotate_covariance,
+)
 from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
 from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.progress import progress_bar
@@ -88,6 +93,9 @@ class MatchResult:
     hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
         re-ranking aligned it), the match first, the others by local score, each with the
         pose it implies.
+    scored_reference: when the nearest-place re-ranking reports a nearer reference that
+        confirmed the match, the reference whose alignment gave the pose, score and confidence
+        (geometric verification tests that one); None: reference_index itself.
     """
 
     reference_index: int
@@ -103,6 +111,7 @@ class MatchResult:
     local_distinctiveness: float = math.nan
     hypotheses: list[Hypothesis] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    scored_reference: int | None = None
 
 
 class MatchedFilterIndex:
@@ -324,8 +333,8 @@ class MatchedFilterIndex:
                                      prepared, headings, volume, n_refs)
         match_pose = result.pose
         if nearer is not None:
-            peak, result = nearer
-            peaks = [peak] + [other for other in peaks if other is not peak]
+            result = self._reported_at(result, nearer.reference, ranked)
+            peaks = [nearer] + [other for other in peaks if other is not nearer]
         aligned = {peak.reference: peak for peak in peaks}
 
         def align(position: int) -> _LocalPeak:
@@ -364,15 +373,14 @@ class MatchedFilterIndex:
     def _nearest_place(self, occupancy: np.ndarray, match: MatchResult,
                        peaks: list["_LocalPeak"], ranked: np.ndarray, searched: np.ndarray,
                        columns: np.ndarray, prepared: PreparedQueries, headings: np.ndarray,
-                       volume, n_refs: int) -> "tuple[_LocalPeak, MatchResult] | None":
-        """The reference nearest the matched pose, aligned, and its match, when it confirms the
-        match.
+                       volume, n_refs: int) -> "_LocalPeak | None":
+        """The reference nearest the matched pose, aligned, when it confirms the match.
 
         The best-scoring reference is often not the nearest: a reference a few metres away
         that sees more of the same scene can outscore it. The nearest reference (to the pose
-        the match implies) replaces the match when its own alignment scores within
+        the match implies) is reported instead when its own alignment scores within
         rerank_margin of the match's and implies the same query position within
-        rerank_agreement_m: same place, same pose, the nearer view of it.
+        rerank_agreement_m: same place, same pose, the nearer view of it (_reported_at).
         """
         if self.search.rerank_margin <= 0:
             return None
@@ -389,7 +397,21 @@ class MatchedFilterIndex:
         confirmed = self._result(candidate, ranked)
         if np.hypot(*(confirmed.pose[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
             return None
-        return candidate, confirmed
+        return candidate
+
+    def _reported_at(self, match: MatchResult, reference: int, ranked: np.ndarray
+                     ) -> MatchResult:
+        """match reported against another reference that confirmed it: the pose, its
+        covariance, the score and the confidence stay the best alignment's (the evidence the
+        match is decided on); the constraint is re-expressed in that reference's frame."""
+        reference_pose = planar(self.map.poses[reference])
+        relative = relative_planar(reference_pose, match.pose)
+        candidates = np.concatenate([[reference], ranked[ranked != reference]])
+        return dataclasses.replace(
+            match, reference_index=reference, scored_reference=match.reference_index,
+            shift_m=relative[:2], rotation_rad=float(relative[2]),
+            relative_covariance=rotate_covariance(match.covariance, -reference_pose[2]),
+            candidates=candidates[:_REPORTED_CANDIDATES])
 
     def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray,
                       columns: np.ndarray, prepared: PreparedQueries, headings: np.ndarray,

@@ -4,7 +4,8 @@ import pytest
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, rotate_occupancy
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import planar, wrap_angle
+from mf_lpr_ros.core.pose import planar, planar_error, query_pose_from_alignment, wrap_angle
+from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.pipeline.mapping import describe_scan
@@ -259,6 +260,35 @@ def test_nearest_place_reranking_reports_the_nearest_reference():
     assert not_nearest(0.0) >= 3
 
 
+def test_a_reported_nearer_reference_keeps_the_best_alignments_evidence():
+    # The nearer reference only confirms the match: the pose, score and confidence stay the
+    # best alignment's, and the constraint to the reported reference leads to that same pose.
+    world = make_world(7)
+    street = ReferenceMap(PARAMS)
+    for i, x in enumerate(np.arange(-20.0, 21.0, 2.0)):
+        points, pose = scan_world(world, x, 0.0, 0.0, np.random.default_rng(i))
+        street.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+                      float(i), i)
+    plain = MatchedFilterIndex(street, SearchParams(rerank_margin=0.0))
+    reranked = MatchedFilterIndex(street, SearchParams(rerank_margin=0.5))
+    moved = 0
+    for k, x in enumerate(np.linspace(-18.3, 18.7, 25)):
+        points, _ = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
+        query = describe_points(points, PARAMS)
+        best, reported = plain.query(query), reranked.query(query)
+        assert reported.score == best.score and reported.confidence == best.confidence
+        np.testing.assert_allclose(reported.pose, best.pose)
+        np.testing.assert_allclose(reported.covariance, best.covariance)
+        reference_pose = planar(street.poses[reported.reference_index])
+        position_gap, yaw_gap_deg = planar_error(
+            query_pose_from_alignment(reference_pose, reported.shift_m, reported.rotation_rad),
+            best.pose)
+        assert position_gap < 1e-9 and yaw_gap_deg < 1e-9
+        assert reported.candidates[0] == reported.reference_index
+        moved += reported.reference_index != best.reference_index
+    assert moved >= 3
+
+
 def _pixel_centred_image(points, pixel=0.4, size=151):
     """Occupied points per pixel, the sensor at the centre of pixel (size // 2, size // 2), as
     BEVPlace draws its KITTI images."""
@@ -348,3 +378,34 @@ def test_maps_of_scans_keep_the_window_by_default(synthetic_map):
     assert not MatchedFilterIndex(synthetic_map, SearchParams()).observed_queries
     assert MatchedFilterIndex(synthetic_map,
                               SearchParams(query_footprint="observed")).observed_queries
+
+
+def test_icp_verifies_the_scored_alignment_when_a_nearer_reference_is_reported():
+    # Verification tests the evidence: ICP runs against the cloud of the reference the match
+    # was scored on, and the refined pose is re-expressed against the reported one.
+    world = make_world(7)
+    street = ReferenceMap(PARAMS)
+    for i, x in enumerate(np.arange(-20.0, 21.0, 2.0)):
+        points, pose = scan_world(world, x, 0.0, 0.0, np.random.default_rng(i))
+        street.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+                      float(i), i, cloud=points)
+    plain = MatchedFilterIndex(street, SearchParams(rerank_margin=0.0))
+    reranked = MatchedFilterIndex(street, SearchParams(rerank_margin=0.5))
+    checked = 0
+    for k, x in enumerate(np.linspace(-18.3, 18.7, 25)):
+        points, _ = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
+        query = describe_points(points, PARAMS)
+        best, reported = plain.query(query), reranked.query(query)
+        if reported.reference_index == best.reference_index:
+            continue
+        assert reported.scored_reference == best.reference_index
+        on_best, on_reported = refine_match(best, points, street), refine_match(reported, points,
+                                                                                street)
+        assert on_reported.fitness == pytest.approx(on_best.fitness, abs=1e-6)
+        np.testing.assert_allclose(reported.pose[:2], best.pose[:2], atol=1e-6)
+        position_gap, yaw_gap_deg = planar_error(query_pose_from_alignment(
+            planar(street.poses[reported.reference_index]), reported.shift_m,
+            reported.rotation_rad), best.pose)
+        assert position_gap < 1e-6 and yaw_gap_deg < 1e-6
+        checked += 1
+    assert checked >= 3
