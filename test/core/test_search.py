@@ -233,24 +233,37 @@ def test_real_kitti_bev_rotated_copies(data_dir):
         assert overlap > 0.35 and overlap > 2 * (wrong & original).sum() / original.sum()
 
 
-def test_nearest_place_reranking_reports_the_nearest_reference():
-    # References every 2 m along a street; a query between two of them often scores best
-    # against one a few metres off that sees more of its scene. Re-ranking reports the nearest.
+def _street(clouds: bool = False) -> tuple[ReferenceMap, np.ndarray]:
+    """References every 2 m along a street of the synthetic world (x positions), with their
+    clouds when asked."""
     world = make_world(7)
-    rng = np.random.default_rng(0)
     street = ReferenceMap(PARAMS)
     xs = np.arange(-20.0, 21.0, 2.0)
     for i, x in enumerate(xs):
-        points, pose = scan_world(world, x, 0.0, 0.0, rng)
+        points, pose = scan_world(world, x, 0.0, 0.0, np.random.default_rng(i))
         street.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
-                      float(i), i)
-    queries = np.linspace(-18.3, 18.7, 25)
+                      float(i), i, cloud=points if clouds else None)
+    return street, xs
+
+
+def _queries_along_the_street():
+    """(x, points, world_T_sensor) of 25 queries between the street's references, 1.5 m to its
+    side and turned 0.7 rad."""
+    world = make_world(7)
+    for k, x in enumerate(np.linspace(-18.3, 18.7, 25)):
+        points, pose = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
+        yield x, points, pose
+
+
+def test_nearest_place_reranking_reports_the_nearest_reference():
+    # A query between two references often scores best against one a few metres off that sees
+    # more of its scene. Re-ranking reports the nearest.
+    street, xs = _street()
 
     def not_nearest(margin):
         index = MatchedFilterIndex(street, SearchParams(rerank_margin=margin))
         misses = 0
-        for k, x in enumerate(queries):
-            points, pose = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
+        for x, points, pose in _queries_along_the_street():
             match = index.query(describe_points(points, PARAMS))
             misses += abs(xs[match.reference_index] - x) > 1.01
             assert np.hypot(*(match.pose[:2] - pose[:2, 3])) < 0.3
@@ -263,30 +276,51 @@ def test_nearest_place_reranking_reports_the_nearest_reference():
 def test_a_reported_nearer_reference_keeps_the_best_alignments_evidence():
     # The nearer reference only confirms the match: the pose, score and confidence stay the
     # best alignment's, and the constraint to the reported reference leads to that same pose.
-    world = make_world(7)
-    street = ReferenceMap(PARAMS)
-    for i, x in enumerate(np.arange(-20.0, 21.0, 2.0)):
-        points, pose = scan_world(world, x, 0.0, 0.0, np.random.default_rng(i))
-        street.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
-                      float(i), i)
-    plain = MatchedFilterIndex(street, SearchParams(rerank_margin=0.0))
-    reranked = MatchedFilterIndex(street, SearchParams(rerank_margin=0.5))
+    street, _ = _street()
     moved = 0
-    for k, x in enumerate(np.linspace(-18.3, 18.7, 25)):
-        points, _ = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
-        query = describe_points(points, PARAMS)
-        best, reported = plain.query(query), reranked.query(query)
+    for _, best, reported in _best_and_reported(street):
         assert reported.score == best.score and reported.confidence == best.confidence
         np.testing.assert_allclose(reported.pose, best.pose)
         np.testing.assert_allclose(reported.covariance, best.covariance)
-        reference_pose = planar(street.poses[reported.reference_index])
-        position_gap, yaw_gap_deg = planar_error(
-            query_pose_from_alignment(reference_pose, reported.shift_m, reported.rotation_rad),
-            best.pose)
-        assert position_gap < 1e-9 and yaw_gap_deg < 1e-9
+        assert _constraint_leads_to(street, reported, best.pose, 1e-9)
         assert reported.candidates[0] == reported.reference_index
         moved += reported.reference_index != best.reference_index
     assert moved >= 3
+
+
+def test_icp_verifies_the_scored_alignment_when_a_nearer_reference_is_reported():
+    # Verification tests the evidence: ICP runs against the cloud of the reference the match
+    # was scored on, and the refined pose is re-expressed against the reported one.
+    street, _ = _street(clouds=True)
+    checked = 0
+    for points, best, reported in _best_and_reported(street):
+        if reported.reference_index == best.reference_index:
+            continue
+        assert reported.scored_reference == best.reference_index
+        on_best, on_reported = refine_match(best, points, street), refine_match(reported, points,
+                                                                                street)
+        assert on_reported.fitness == pytest.approx(on_best.fitness, abs=1e-6)
+        np.testing.assert_allclose(reported.pose[:2], best.pose[:2], atol=1e-6)
+        assert _constraint_leads_to(street, reported, best.pose, 1e-6)
+        checked += 1
+    assert checked >= 3
+
+
+def _best_and_reported(street):
+    """(query points, match without re-ranking, match with it) of the street's queries."""
+    plain = MatchedFilterIndex(street, SearchParams(rerank_margin=0.0))
+    reranked = MatchedFilterIndex(street, SearchParams(rerank_margin=0.5))
+    for _, points, _ in _queries_along_the_street():
+        query = describe_points(points, PARAMS)
+        yield points, plain.query(query), reranked.query(query)
+
+
+def _constraint_leads_to(reference_map, match, pose, tolerance):
+    """Whether the match's reference pose composed with its alignment gives pose."""
+    position_gap, yaw_gap_deg = planar_error(query_pose_from_alignment(
+        planar(reference_map.poses[match.reference_index]), match.shift_m, match.rotation_rad),
+        pose)
+    return position_gap < tolerance and yaw_gap_deg < tolerance
 
 
 def _pixel_centred_image(points, pixel=0.4, size=151):
@@ -379,33 +413,3 @@ def test_maps_of_scans_keep_the_window_by_default(synthetic_map):
     assert MatchedFilterIndex(synthetic_map,
                               SearchParams(query_footprint="observed")).observed_queries
 
-
-def test_icp_verifies_the_scored_alignment_when_a_nearer_reference_is_reported():
-    # Verification tests the evidence: ICP runs against the cloud of the reference the match
-    # was scored on, and the refined pose is re-expressed against the reported one.
-    world = make_world(7)
-    street = ReferenceMap(PARAMS)
-    for i, x in enumerate(np.arange(-20.0, 21.0, 2.0)):
-        points, pose = scan_world(world, x, 0.0, 0.0, np.random.default_rng(i))
-        street.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
-                      float(i), i, cloud=points)
-    plain = MatchedFilterIndex(street, SearchParams(rerank_margin=0.0))
-    reranked = MatchedFilterIndex(street, SearchParams(rerank_margin=0.5))
-    checked = 0
-    for k, x in enumerate(np.linspace(-18.3, 18.7, 25)):
-        points, _ = scan_world(world, x, 1.5, 0.7, np.random.default_rng(k))
-        query = describe_points(points, PARAMS)
-        best, reported = plain.query(query), reranked.query(query)
-        if reported.reference_index == best.reference_index:
-            continue
-        assert reported.scored_reference == best.reference_index
-        on_best, on_reported = refine_match(best, points, street), refine_match(reported, points,
-                                                                                street)
-        assert on_reported.fitness == pytest.approx(on_best.fitness, abs=1e-6)
-        np.testing.assert_allclose(reported.pose[:2], best.pose[:2], atol=1e-6)
-        position_gap, yaw_gap_deg = planar_error(query_pose_from_alignment(
-            planar(street.poses[reported.reference_index]), reported.shift_m,
-            reported.rotation_rad), best.pose)
-        assert position_gap < 1e-6 and yaw_gap_deg < 1e-6
-        checked += 1
-    assert checked >= 3
