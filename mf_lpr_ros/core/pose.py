@@ -171,6 +171,14 @@ def query_pose_from_alignment(reference_pose: np.ndarray, shift_m: np.ndarray,
                      float(wrap_angle(psi_r + rotation_rad))])
 
 
+def alignment_from_poses(reference_pose: np.ndarray, query_pose: np.ndarray
+                         ) -> tuple[np.ndarray, float]:
+    """(shift_m, rotation_rad): the alignment that query_pose_from_alignment turns into
+    query_pose against reference_pose (planar poses)."""
+    relative = relative_planar(reference_pose, query_pose)
+    return relative[:2], float(relative[2])
+
+
 def rotate_covariance(covariance: np.ndarray, yaw: float) -> np.ndarray:
     """A planar (x, y, yaw) covariance expressed in a frame rotated by yaw."""
     rotation = np.eye(3)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mf_lpr_ros.core.pose import planar, query_pose_from_alignment, relative_planar
+from mf_lpr_ros.core.pose import alignment_from_poses, planar, query_pose_from_alignment
 from mf_lpr_ros.optional import require
 
 if TYPE_CHECKING:
@@ -76,20 +76,16 @@ def refine_match(match: "MatchResult", points: np.ndarray, reference_map: "Refer
     points = points[::max(1, -(-len(points) // MAX_QUERY_POINTS))]
     scored = match.reference_index if match.scored_reference is None else match.scored_reference
     scored_pose = planar(reference_map.poses[scored])
-    if scored == match.reference_index:
-        shift_m, rotation_rad = match.shift_m, match.rotation_rad
-    else:
-        relative = relative_planar(scored_pose, match.pose)
-        shift_m, rotation_rad = relative[:2], float(relative[2])
+    reported_is_scored = scored == match.reference_index
+    shift_m, rotation_rad = ((match.shift_m, match.rotation_rad) if reported_is_scored
+                             else alignment_from_poses(scored_pose, match.pose))
     refined = refine_with_icp(points, reference_map.cloud(scored), shift_m, rotation_rad,
                               max_correspondence_m=2 * reference_map.params.voxel_size)
     if refined.accepted:
         match.pose = query_pose_from_alignment(scored_pose, refined.shift_m, refined.rotation_rad)
-        if scored == match.reference_index:
-            match.shift_m, match.rotation_rad = refined.shift_m, refined.rotation_rad
-        else:
-            relative = relative_planar(planar(reference_map.poses[match.reference_index]),
-                                       match.pose)
-            match.shift_m, match.rotation_rad = relative[:2], float(relative[2])
+        match.shift_m, match.rotation_rad = (
+            (refined.shift_m, refined.rotation_rad) if reported_is_scored
+            else alignment_from_poses(planar(reference_map.poses[match.reference_index]),
+                                      match.pose))
     match.timings_ms["icp"] = (time.perf_counter() - started) * 1e3
     return refined

@@ -27,9 +27,9 @@ from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.matched_filter import PreparedQueries
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import (
+    alignment_from_poses,
     planar,
     query_pose_from_alignment,
-    relative_planar,
     rotate_covariance,
 )
 from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
@@ -405,11 +405,11 @@ class MatchedFilterIndex:
         covariance, the score and the confidence stay the best alignment's (the evidence the
         match is decided on); the constraint is re-expressed in that reference's frame."""
         reference_pose = planar(self.map.poses[reference])
-        relative = relative_planar(reference_pose, match.pose)
+        shift_m, rotation_rad = alignment_from_poses(reference_pose, match.pose)
         candidates = np.concatenate([[reference], ranked[ranked != reference]])
         return dataclasses.replace(
             match, reference_index=reference, scored_reference=match.reference_index,
-            shift_m=relative[:2], rotation_rad=float(relative[2]),
+            shift_m=shift_m, rotation_rad=rotation_rad,
             relative_covariance=rotate_covariance(match.covariance, -reference_pose[2]),
             candidates=candidates[:_REPORTED_CANDIDATES])
 
