@@ -127,11 +127,14 @@ def _check_width_height(values: dict[str, list[str]], n_points: int, path: Path)
 
 
 def _ascii_points(raw: bytes, header: PcdHeader, path: Path) -> np.ndarray:
+    width = sum(count for _, _, count in header.fields)
     try:
-        table = np.loadtxt(raw[header.data_start:].decode("ascii").splitlines(), ndmin=2)
+        # No data rows is an empty table (checked against POINTS below), not a numpy warning.
+        rows = [line for line in raw[header.data_start:].decode("ascii").splitlines()
+                if line.strip() and not line.lstrip().startswith("#")]
+        table = np.loadtxt(rows, ndmin=2) if rows else np.zeros((0, width))
     except (UnicodeDecodeError, ValueError) as error:
         raise DatasetError(f"{path}: malformed ASCII PCD data ({error})") from None
-    width = sum(count for _, _, count in header.fields)
     if table.shape != (header.n_points, width) and header.n_points:
         raise DatasetError(f"{path}: {table.shape[0]} ASCII rows of {table.shape[1]} values "
                            f"for {header.n_points} points of {width}")

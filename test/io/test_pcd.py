@@ -4,6 +4,7 @@ its binary twin; hostile headers and payloads are refused by name."""
 from __future__ import annotations
 
 import struct
+import warnings
 
 import numpy as np
 import pytest
@@ -74,3 +75,22 @@ def test_damaged_compressed_pcd_is_refused_by_name(twins, damage, expected):
     compressed.write_bytes(bytes(raw))
     with pytest.raises(DatasetError, match=expected):
         read_pcd(compressed)
+
+
+@pytest.mark.parametrize("points, rows, expected", [
+    (2, "", "0 ASCII rows"),
+    (2, "# no rows\n\n", "0 ASCII rows"),
+    (2, "1 2 3\n", "1 ASCII rows"),
+    (0, "", None),
+])
+def test_ascii_pcd_rows_are_counted_against_points(tmp_path, points, rows, expected):
+    path = tmp_path / "cloud.pcd"
+    path.write_text("VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                    f"WIDTH {points}\nHEIGHT 1\nPOINTS {points}\nDATA ascii\n{rows}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        if expected is None:
+            assert read_pcd(path).shape == (0, 3)
+        else:
+            with pytest.raises(DatasetError, match=expected):
+                read_pcd(path)
