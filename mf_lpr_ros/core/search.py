@@ -92,7 +92,8 @@ class MatchResult:
     candidates: reference indices by rank (the match first, then the global ranking).
     hypotheses: the local stage's finalists (SearchParams.top_n, and the nearest place when
         re-ranking aligned it), the match first, the others by local score, each with the
-        pose it implies.
+        pose it implies; a reported nearer reference stands for the finalist it confirmed
+        (one answer, listed once).
     scored_reference: when the nearest-place re-ranking reports a nearer reference that
         confirmed the match, the reference whose alignment gave the pose, score and confidence
         (geometric verification tests that one); None: reference_index itself.
@@ -350,6 +351,8 @@ class MatchedFilterIndex:
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
         for peak in peaks[1:]:
+            if peak.reference == result.scored_reference:
+                continue
             other = self._result(peak, ranked)
             result.hypotheses.append(Hypothesis(other.reference_index, other.pose, other.score,
                                                 other.confidence))

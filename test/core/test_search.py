@@ -284,7 +284,12 @@ def test_a_reported_nearer_reference_keeps_the_best_alignments_evidence():
         np.testing.assert_allclose(reported.covariance, best.covariance)
         assert _constraint_leads_to(street, reported, best.pose, 1e-9)
         assert reported.candidates[0] == reported.reference_index
-        moved += reported.reference_index != best.reference_index
+        listed = [h.reference_index for h in reported.hypotheses]
+        assert listed[0] == reported.reference_index and len(set(listed)) == len(listed)
+        np.testing.assert_allclose(reported.hypotheses[0].pose, best.pose)
+        if reported.reference_index != best.reference_index:
+            assert best.reference_index not in listed
+            moved += 1
     assert moved >= 3
 
 
