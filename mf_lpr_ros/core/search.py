@@ -409,12 +409,11 @@ class MatchedFilterIndex:
         match is decided on); the constraint is re-expressed in that reference's frame."""
         reference_pose = planar(self.map.poses[reference])
         shift_m, rotation_rad = alignment_from_poses(reference_pose, match.pose)
-        candidates = np.concatenate([[reference], ranked[ranked != reference]])
         return dataclasses.replace(
             match, reference_index=reference, scored_reference=match.reference_index,
             shift_m=shift_m, rotation_rad=rotation_rad,
             relative_covariance=rotate_covariance(match.covariance, -reference_pose[2]),
-            candidates=candidates[:_REPORTED_CANDIDATES])
+            candidates=_led_by(reference, ranked))
 
     def _coarse_angle(self, reference: int, match: MatchResult, searched: np.ndarray,
                       columns: np.ndarray, prepared: PreparedQueries, headings: np.ndarray,
@@ -683,13 +682,17 @@ class MatchedFilterIndex:
 
         reference_pose = planar(self.map.poses[peak.reference])
         pose = query_pose_from_alignment(reference_pose, shift_m, rotation)
-        candidates = np.concatenate([[peak.reference], ranked[ranked != peak.reference]])
         return MatchResult(
             reference_index=peak.reference, score=peak.score, confidence=peak.confidence,
             shift_m=shift_m, rotation_rad=rotation, pose=pose,
             covariance=rotate_covariance(relative_covariance, reference_pose[2]),
             relative_covariance=relative_covariance,
-            candidates=candidates[:_REPORTED_CANDIDATES])
+            candidates=_led_by(peak.reference, ranked))
+
+
+def _led_by(reference: int, ranked: np.ndarray) -> np.ndarray:
+    """MatchResult.candidates: reference first, then the global ranking without it."""
+    return np.concatenate([[reference], ranked[ranked != reference]])[:_REPORTED_CANDIDATES]
 
 
 @dataclass
