@@ -23,11 +23,6 @@ from mf_lpr_ros.core.workers import Workers
 
 _MIN_RADIUS_BINS = 1.5
 _RADIAL_SUBSAMPLE_BINS = 0.5
-# The magnitudes' power before they are compared: a low power compresses the dominant low
-# frequencies so that structure at every scale counts (docs/RESULTS.md, session 22: 0.25
-# kept the true place among 64 candidates more often than the square root on all four KITTI
-# 00 pairs measured, and than 0.33 and 0.2 on three of them).
-_MAGNITUDE_POWER = 0.25
 # References scored together: their temporaries (~0.5 MB a harmonic's products, 1 MB of
 # scores over angles) stay in cache, so only the features stream from memory (3x faster
 # at 192k references than blocks of 65536).
@@ -87,8 +82,9 @@ class PolarSpectrumIndex(NumpyArrays):
         magnitude = np.abs(np.fft.rfft2(centred, s=(self.fft_size, self.fft_size)))
         rows, cols, weights = self._sampling
         flat = magnitude.reshape(len(images), -1)
-        polar = (np.einsum("npk,pk->np", flat[:, rows * magnitude.shape[2] + cols], weights)
-                 ** _MAGNITUDE_POWER).reshape(len(images), self.n_radii, self.n_angles)
+        # sqrt compresses the dominant low frequencies so that structure at every scale counts.
+        polar = np.sqrt(np.einsum("npk,pk->np", flat[:, rows * magnitude.shape[2] + cols],
+                                  weights)).reshape(len(images), self.n_radii, self.n_angles)
         polar -= polar.mean(axis=(1, 2), keepdims=True)
         polar /= np.maximum(np.linalg.norm(polar, axis=(1, 2), keepdims=True), 1e-9)
         return np.fft.rfft(polar, axis=2).transpose(0, 2, 1).astype(np.complex64)

@@ -27,7 +27,7 @@ from mf_lpr_ros.core.map_store import aligned, array_crc32, write_atomically
 
 CACHE_SUFFIX = ".prefilter"
 # Raised whenever PolarSpectrumIndex.features changes what it computes.
-FEATURES_VERSION = 3
+FEATURES_VERSION = 2
 _MAGIC = b"MFLPRPFX"
 _PREAMBLE = struct.Struct("<8sII")
 _MAX_HEADER_BYTES = 1 << 16
