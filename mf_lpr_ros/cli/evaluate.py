@@ -41,9 +41,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(text + "\n")
     for key in ("n_queries", "n_references", "recall_at_1", "recall_at_1_corrected", "recall_at_5",
-                "rte_mean_m", "rre_mean_deg", "success_rate", "f1_max", "closures_published",
-                "closures_false", "precision_published", "recall_published",
-                "recall_at_100_precision", "ms_per_query"):
+                "candidate_recall", "rte_mean_m", "rre_mean_deg", "success_rate", "f1_max",
+                "closures_published", "closures_false", "precision_published",
+                "recall_published", "recall_at_100_precision", "ms_per_query"):
         value = results[key]
         print(f"{key:>22}: {value:.4f}" if isinstance(value, float) else f"{key:>22}: {value}")
     return 0

@@ -97,6 +97,9 @@ class MatchResult:
     scored_reference: when the nearest-place re-ranking reports a nearer reference that
         confirmed the match, the reference whose alignment gave the pose, score and confidence
         (geometric verification tests that one); None: reference_index itself.
+    searched: the references the candidate stage handed to the exact global stage (the
+        prefilter's list and its map neighbours); None: every active reference was searched.
+        A true place missing from it cannot be matched: what the candidate stage loses.
     """
 
     reference_index: int
@@ -113,6 +116,7 @@ class MatchResult:
     hypotheses: list[Hypothesis] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
     scored_reference: int | None = None
+    searched: np.ndarray | None = None
 
 
 class MatchedFilterIndex:
@@ -359,6 +363,7 @@ class MatchedFilterIndex:
         result.timings_ms = {"global": (global_done - started) * 1e3,
                              "prefilter": (prefilter_done - started) * 1e3,
                              "local": (time.perf_counter() - global_done) * 1e3}
+        result.searched = searched if prefiltered else None
         return result
 
     def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray

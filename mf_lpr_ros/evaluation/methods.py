@@ -35,7 +35,8 @@ class Retrieval:
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
     (their order among this method's queries) it would now publish, confirmed late;
-    distinctiveness and reason: see QueryRecord."""
+    distinctiveness and reason: see QueryRecord; searched: the references its candidate stage
+    kept for the full comparison (None: the method does not say)."""
 
     reference: int
     pose: np.ndarray
@@ -48,6 +49,7 @@ class Retrieval:
     distinctiveness: float = math.nan
     local_distinctiveness: float = math.nan
     reason: str = ""
+    searched: np.ndarray | None = None
 
 
 class MatchedFilterMethod:
@@ -91,7 +93,8 @@ class MatchedFilterMethod:
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
                          verdict.confirms, match.distinctiveness, match.local_distinctiveness,
-                         verdict.reason)
+                         verdict.reason,
+                         np.arange(n_active) if match.searched is None else match.searched)
 
 
 class ScanContextMethod:
@@ -121,7 +124,8 @@ class ScanContextMethod:
         pose = self._poses[found] + np.array([0.0, 0.0, yaw])
         pose[2] = wrap_angle(pose[2])
         return Retrieval(found, pose, 1.0 - distance, candidates, elapsed,
-                         published=distance < self._index.params.accept_distance)
+                         published=distance < self._index.params.accept_distance,
+                         searched=candidates)
 
 
 class MapClosuresMethod:

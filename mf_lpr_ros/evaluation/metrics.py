@@ -25,7 +25,8 @@ class QueryRecord:
     distinctiveness, local_distinctiveness, reason: MF-LPR's MatchResult figures and the
     verification's reason for the verdict (NaN and "" for methods without them; the local
     figure is NaN where it was not needed): why a revisit was not published can be read off
-    a run.
+    a run. searched_nearest_m: the nearest to the truth of the references the method's
+    candidate stage kept for the full comparison; NaN when the method does not say.
     """
 
     query_index: int
@@ -46,6 +47,7 @@ class QueryRecord:
     distinctiveness: float = math.nan
     local_distinctiveness: float = math.nan
     reason: str = ""
+    searched_nearest_m: float = math.nan
 
 
 def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int) -> dict:
@@ -54,6 +56,9 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
     recall_at_1: the retrieved reference lies within tolerance (retrieval recall).
     recall_at_1_corrected: the estimated pose lies within tolerance (the paper's recall).
     recall_at_n[k-1]: one of the best k candidates lies within tolerance.
+    candidate_recall: a reference within tolerance is among those the candidate stage kept
+    for the full comparison (what it loses, the search cannot retrieve, bar MF-LPR's report
+    of the place nearest its match); NaN when the method does not say.
     RTE/RRE mean and std over successes (RTE < 2 m and RRE < 5 deg among correct retrievals);
     success_rate = successes / correct retrievals (BVMatch). f1_max and pr_curve over the
     confidence: an accepted correct retrieval is a true positive, any other accepted match a
@@ -90,6 +95,7 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
     def stat(values: np.ndarray, reducer) -> float:
         return float(reducer(values)) if len(values) else float("nan")
 
+    searched_nearest = column(r.searched_nearest_m for r in records)
     confidence = column(r.confidence for r in records)
     thresholds = np.linspace(0.0, 2.0 * tolerance_m, 41)[1:]
     ms_descriptor = column(r.ms_descriptor for r in records)
@@ -109,6 +115,8 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
         "recall_at_1_corrected": rate(rte <= tolerance_m),
         "recall_at_5": rate(recall_at_n[:, -1]),
         "recall_at_n": [rate(recall_at_n[:, k]) for k in range(RECALL_AT_N)],
+        "candidate_recall": rate(searched_nearest <= tolerance_m)
+        if np.isfinite(searched_nearest[positive]).any() else float("nan"),
         "rte_mean_m": stat(rte[success], np.mean),
         "rte_std_m": stat(rte[success], np.std),
         "rre_mean_deg": stat(rre[success], np.mean),

@@ -202,11 +202,20 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             ms_local=retrieval.ms_local,
             distinctiveness=float(retrieval.distinctiveness),
             local_distinctiveness=float(retrieval.local_distinctiveness),
-            reason=retrieval.reason))
+            reason=retrieval.reason,
+            searched_nearest_m=_nearest_of(distances, retrieval.searched)))
         for earlier in retrieval.confirms:
             records[earlier].published = True
             records[earlier].reason = reason_when_confirmed(records[earlier].reason)
     return records
+
+
+def _nearest_of(distances: np.ndarray, references: np.ndarray | None) -> float:
+    """The smallest of distances at references (inf for none; NaN when references is None)."""
+    if references is None:
+        return math.nan
+    references = np.asarray(references, dtype=np.int64)
+    return float(distances[references].min()) if len(references) else math.inf
 
 
 @dataclass

@@ -26,7 +26,8 @@ from mf_lpr_ros.progress import progress_bar
 from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, SIMULATION_VERSION, WORLDS, world_bags
 
 DEFAULT_METHODS = ("mf-lpr", "scan-context")
-TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "rte_mean_m",
+TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "candidate_recall",
+                 "rte_mean_m",
                  "rre_mean_deg", "success_rate", "f1_max", "closures_published",
                  "closures_false", "precision_published", "recall_published",
                  "recall_at_100_precision", "ms_per_query")
@@ -209,8 +210,10 @@ def run_suite(suite: Suite, root: Path, out: Path, *, methods=None, progress: bo
                          progress=progress, description=suite.name)
         for pair, method, _ in to_run:
             results[(pair.name, method)] = done[f"{pair.name}__{method}"]
+    # A run saved before a column existed shows it as NaN.
     rows = [{"pair": pair.name, "method": results[(pair.name, m)].method,
-             **results[(pair.name, m)].summary} for pair in pairs for m in methods]
+             **dict.fromkeys(TABLE_COLUMNS, math.nan), **results[(pair.name, m)].summary}
+            for pair in pairs for m in methods]
     rows += [published_row(figure, rows) for figure in suite.published]
     rows += average_rows(rows)
     _write_outputs(out, suite, pairs, rows)

@@ -23,8 +23,8 @@ from mf_lpr_ros.errors import DatasetError
 
 RULE_RECALLS = ("recall_at_1", "recall_at_1_corrected", "recall_published")
 ONE_POINT = 0.01
-TABLE_FIGURES = ("recall_at_1", "recall_at_1_corrected", "closures_published", "closures_false",
-                 "recall_published")
+TABLE_FIGURES = ("recall_at_1", "recall_at_1_corrected", "candidate_recall",
+                 "closures_published", "closures_false", "recall_published")
 
 
 @dataclass(frozen=True)

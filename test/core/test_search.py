@@ -62,6 +62,24 @@ def test_known_transform_is_recovered(world, synthetic_map, truth, expected_ref,
     assert set(result.timings_ms) == {"global", "prefilter", "local"}
 
 
+@pytest.mark.parametrize("prefilter_top_k", [0, 2, 5])
+def test_a_match_says_which_references_its_candidate_stage_kept(world, synthetic_map,
+                                                                prefilter_top_k):
+    """The prefilter's list (and its map neighbours) when it narrowed the search; None when
+    every reference was searched (no prefilter, or one that would keep them all)."""
+    points, _ = scan_world(world, 24.1, 1.9, -2.0, np.random.default_rng(1))
+    query = describe_points(points, PARAMS)
+    index = MatchedFilterIndex(synthetic_map, SearchParams(prefilter_top_k=prefilter_top_k,
+                                                           prefilter_expand_m=0.0))
+    result = index.query(query)
+    if prefilter_top_k in (0, len(synthetic_map)):
+        assert result.searched is None
+    else:
+        assert result.searched.tolist() == index.candidates(query, prefilter_top_k).tolist()
+        assert len(result.searched) == prefilter_top_k
+        assert result.reference_index in result.searched
+
+
 @pytest.mark.parametrize("prefilter_top_k", [0, 2])
 def test_two_threads_find_what_one_finds(world, synthetic_map, prefilter_top_k):
     points, _ = scan_world(world, 21.45, 18.2, -1.7, np.random.default_rng(1))

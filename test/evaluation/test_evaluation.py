@@ -169,3 +169,44 @@ def test_each_record_says_why_its_match_was_or_was_not_published(tmp_path, world
         assert bool(np.isfinite(record.local_distinctiveness)) is needed
         if not record.published and needed and record.local_distinctiveness < 0.3:
             assert "local" in record.reason
+
+
+def test_candidate_recall_counts_revisits_whose_true_place_was_compared_in_full():
+    def searched(nearest, searched_nearest):
+        record = _record(nearest, 9.0, 9.0, 1.0, 0.5, [9.0])
+        record.searched_nearest_m = searched_nearest
+        return record
+
+    records = [searched(1.0, 1.0), searched(1.0, 4.0), searched(2.0, 2.5),
+               searched(8.0, 8.0)]     # the last has no reference in reach: not counted
+    assert summarise(records, 3.0, 4)["candidate_recall"] == pytest.approx(2 / 3)
+    # A method that does not say what it compared has no candidate recall.
+    assert np.isnan(summarise([_record(1.0, 1.0, 0.5, 1.0, 0.9, [1.0])], 3.0, 1)
+                    ["candidate_recall"])
+
+
+def test_each_record_holds_the_nearest_place_its_candidate_stage_kept(tmp_path, world):
+    """Searching every reference, the nearest searched is the nearest there is; a candidate
+    stage that keeps one reference leaves nearer ones out."""
+    import dataclasses
+
+    from mf_lpr_ros.config import preset
+    from mf_lpr_ros.datasets import open_source
+    from mf_lpr_ros.evaluation.protocol import evaluate_pair
+    from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
+
+    write_kitti_sequence(tmp_path / "first", world, route(40), seed=1)
+    write_kitti_sequence(tmp_path / "second", world, route(12, lateral_offset_m=1.0), seed=2)
+    config = preset("kitti")
+
+    def records(top_k: int):
+        search = dataclasses.replace(config.search, prefilter_top_k=top_k,
+                                     prefilter_expand_m=0.0)
+        return evaluate_pair(open_source(tmp_path / "first"),
+                             dataclasses.replace(config, search=search), Protocol(5.0),
+                             query=open_source(tmp_path / "second"), progress=False).records
+
+    exact, narrowed = records(0), records(1)
+    assert [r.searched_nearest_m for r in exact] == [r.nearest_reference_m for r in exact]
+    assert all(r.searched_nearest_m >= r.nearest_reference_m for r in narrowed)
+    assert any(r.searched_nearest_m > r.nearest_reference_m + 1.0 for r in narrowed)
