@@ -99,7 +99,8 @@ class MatchResult:
         (geometric verification tests that one); None: reference_index itself.
     searched: the references the candidate stage handed to the exact global stage (the
         prefilter's list and its map neighbours); None: every active reference was searched.
-        A true place missing from it cannot be matched: what the candidate stage loses.
+        A true place missing from it can be reported only as the place nearest the match
+        (the re-ranking): what the candidate stage loses.
     """
 
     reference_index: int
