@@ -60,11 +60,13 @@ def measure(folder: Path, every: int, top_ks: list[int]) -> list[tuple]:
         kept_exact, kept_true, agree, correct, sizes = [], [], [], [], []
         for (occupancy, distances, offset), exact_match in zip(
                 tqdm(queries, desc=f"{folder.name}: k={top_k}"), exact_matches):
-            candidates = index.candidates(occupancy, top_k)
+            match = index.query(occupancy, sensor_offset_m=offset)
+            candidates = (np.arange(len(reference_map)) if match.searched is None
+                          else match.searched)
             sizes.append(len(candidates))
             kept_exact.append(exact_match in candidates)
             kept_true.append(bool((distances[candidates] <= TOLERANCE_M).any()))
-            found = index.query(occupancy, sensor_offset_m=offset).reference_index
+            found = match.reference_index
             agree.append(found == exact_match)
             correct.append(distances[found] <= TOLERANCE_M)
         rows.append((folder.name, str(top_k), len(queries), _mean(kept_exact),

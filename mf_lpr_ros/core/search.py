@@ -511,8 +511,8 @@ class MatchedFilterIndex:
                    ) -> np.ndarray:
         """The references the exact global stage would search for this query with
         prefilter_top_k = top_k: the prefilter's top_k and their map neighbours (every
-        reference when top_k is 0 or covers them all). For measuring what the candidate stage
-        loses (benchmarks/bench_candidates.py)."""
+        reference when top_k is 0 or covers them all), without searching them: what a query's
+        MatchResult.searched would hold, at the cost of the prefilter alone."""
         n_refs = len(self) if n_active is None else min(n_active, len(self))
         if self.prefilter is None or top_k <= 0 or n_refs <= top_k:
             return np.arange(n_refs)
