@@ -91,7 +91,10 @@ def datasets_page() -> str:
              "in this order (one loader per file in `mf_lpr_ros/datasets/`, each tested on "
              "fixtures written in its exact on-disk format). Scans are always ordered by their "
              "time, never by the directory listing, and poses are interpolated at each scan's "
-             "stamp. Anything else is refused with an error listing these layouts.", "",
+             "stamp. A scan outside the poses' span takes the first or last pose only within "
+             "half a pose interval, where that pose is still its nearest; further out it has no "
+             "pose (as in the nodes) rather than that of a place up to `max_pose_gap_s` away. "
+             "Anything else is refused with an error listing these layouts.", "",
              "| layout | loader | notes |", "|---|---|---|"]
     for loader in LOADERS:
         module = loader.__module__.replace(".", "/") + ".py"

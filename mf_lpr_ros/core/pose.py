@@ -102,8 +102,8 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query_stamps: np.nd
     """Poses at query stamps: linear in translation, slerp in rotation.
 
     stamps (N,) increasing, poses (N, 4, 4). A query is valid when it lies between two samples
-    no more than max_gap_s apart, matches a sample's stamp, or lies within max_gap_s of an end
-    sample (then that sample).
+    no more than max_gap_s apart, matches a sample's stamp, or lies just outside the samples'
+    span, within end_hold_s(stamps, max_gap_s) of an end sample (then that sample).
     Returns (poses (M, 4, 4), valid (M,) bool); invalid entries hold the identity.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
@@ -119,8 +119,9 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query_stamps: np.nd
     t0, t1 = stamps[before], stamps[after]
     span = t1 - t0
     inside = (query_stamps >= t0) & (query_stamps <= t1) & (span <= max_gap_s)
-    near_first = np.abs(query_stamps - stamps[0]) <= max_gap_s
-    near_last = np.abs(query_stamps - stamps[-1]) <= max_gap_s
+    hold_s = end_hold_s(stamps, max_gap_s)
+    near_first = np.abs(query_stamps - stamps[0]) <= hold_s
+    near_last = np.abs(query_stamps - stamps[-1]) <= hold_s
     alpha = np.where(span > 0, (query_stamps - t0) / np.where(span > 0, span, 1.0), 0.0)
     alpha = np.clip(alpha, 0.0, 1.0)
     q0 = matrix_to_quaternion(poses[before, :3, :3])
@@ -139,6 +140,17 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query_stamps: np.nd
         result[near] = poses[end]
         valid |= near
     return result, valid
+
+
+def end_hold_s(stamps: np.ndarray, max_gap_s: float) -> float:
+    """How far outside the samples' span a query still takes the end sample's pose: half the
+    median sample interval (capped at max_gap_s), the most a stamp can be off while the end
+    sample is still its nearest. Holding a pose longer would place a moving sensor's scan where
+    the sensor was up to max_gap_s away (10 m at 10 m/s). A single sample holds for exact
+    stamps only."""
+    if len(stamps) < 2:
+        return _EXACT_STAMP_S
+    return min(max_gap_s, 0.5 * float(np.median(np.diff(stamps))))
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:

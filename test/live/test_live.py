@@ -35,7 +35,9 @@ def test_pose_buffer_interpolates_waits_and_refuses():
     assert math.atan2(pose[1, 0], pose[0, 0]) == pytest.approx(0.05)
     assert buffer.lookup(1.5) == ("wait", None)           # a later sample may still come
     assert buffer.lookup(3.0)[0] == "none"                # too far past the newest sample
-    assert buffer.lookup(1.5, final=True)[0] == "ok"      # end of stream: the last sample
+    # End of stream: the last sample, only while it is still the nearest (half an interval).
+    assert buffer.lookup(1.4, final=True)[0] == "ok"
+    assert buffer.lookup(1.6, final=True)[0] == "none"
     assert buffer.lookup(-5.0)[0] == "none"
     with pytest.raises(InvalidPoseError, match="not after"):
         buffer.add(0.5, pose_at(1.0))
@@ -47,6 +49,17 @@ def test_pose_buffer_interpolates_waits_and_refuses():
     sheared[0, 1] = 0.5
     with pytest.raises(InvalidPoseError, match="orthonormal"):
         buffer.add(2.0, sheared)
+
+
+def test_a_scan_before_the_first_pose_is_not_given_a_pose_a_whole_interval_later():
+    # Odometry at 1 Hz from t = 7 s (the samples before lost): the scan at 6 s was taken ~2 m
+    # from where the sample at 7 s puts it, and must not become a reference there.
+    buffer = PoseBuffer(max_gap_s=1.0)
+    for stamp in (7.0, 8.0, 9.0):
+        buffer.add(stamp, pose_at(2.0 * stamp))
+    assert buffer.lookup(6.0)[0] == "none"
+    status, pose = buffer.lookup(6.9)
+    assert status == "ok" and pose[0, 3] == pytest.approx(14.0)
 
 
 def test_a_pose_jump_restarts_the_buffer():
