@@ -131,22 +131,28 @@ def test_saves_while_another_thread_appends_are_whole_maps(tmp_path, rng):
     reference_map = ReferenceMap(PARAMS)
     occupancy = rng.random((PARAMS.size, PARAMS.size)) < 0.1
     clouds = [rng.random((50 + k % 7, 3)).astype(np.float32) for k in range(400)]
-    done = threading.Event()
+    half_appended, half_saved, done = threading.Event(), threading.Event(), threading.Event()
 
     def append_and_count():
         for k, cloud in enumerate(clouds):
+            if k == len(clouds) // 2:
+                # However the threads are scheduled, one save falls between the two halves:
+                # the test never passes without a save of a map still growing.
+                half_appended.set()
+                half_saved.wait(timeout=60)
             reference_map.append(occupancy, np.eye(4), float(k), k, cloud=cloud)
             len(reference_map)
         done.set()
 
     interval = sys.getswitchinterval()
     sys.setswitchinterval(1e-6)                     # switch threads as often as possible
+    saved_lengths = []
     try:
         appender = threading.Thread(target=append_and_count)
         appender.start()
-        saves = 0
-        while not done.is_set() or saves == 0:
-            path = tmp_path / f"save{saves}.mfmap"
+        while not done.is_set() or not saved_lengths:
+            after_half = half_appended.is_set()
+            path = tmp_path / f"save{len(saved_lengths)}.mfmap"
             reference_map.save(path)
             loaded = ReferenceMap.load(path)
             np.testing.assert_array_equal(loaded.stamps, np.arange(len(loaded)))
@@ -154,10 +160,13 @@ def test_saves_while_another_thread_appends_are_whole_maps(tmp_path, rng):
                 assert len(loaded.cloud_offsets) == len(loaded) + 1
                 for k in range(len(loaded)):
                     assert len(loaded.cloud(k)) == len(clouds[k])
-            saves += 1
+            saved_lengths.append(len(loaded))
+            if after_half:
+                half_saved.set()
         appender.join()
     finally:
         sys.setswitchinterval(interval)
     final = tmp_path / "final.mfmap"
     reference_map.save(final)
-    assert len(ReferenceMap.load(final)) == 400 and saves > 1
+    assert len(ReferenceMap.load(final)) == 400
+    assert any(0 < length < 400 for length in saved_lengths), saved_lengths
