@@ -7,6 +7,7 @@ from mf_lpr_ros.core.descriptor import (
     cap_patches,
     describe_density_image,
     describe_points,
+    filter_points,
     footprint,
     height_density,
     pool,
@@ -50,6 +51,20 @@ def test_threshold_nan_and_height_band():
     assert not occupancy[66, 54]  # one voxel is not > 1
     assert not occupancy[54, 60]  # above z_max
     assert occupancy.sum() == 1
+
+
+def test_filter_drops_every_non_finite_coordinate_and_keeps_the_range_and_disc():
+    good = [[1.0, 2.0, 0.5], [9.9, 0.0, 100.0]]
+    broken = [[np.nan, 1.0, 0.0], [1.0, -np.inf, 0.0], [1.0, 1.0, np.nan], [1.0, 1.0, np.inf],
+              [0.0, 0.0, -np.inf]]
+    kept = filter_points(np.array(good + broken), DescriptorParams(voxel_size=0.5))
+    np.testing.assert_array_equal(kept, good)
+    # 10.0 m and the window's half side (30 m) are limits: inside on one side, out on the other.
+    cloud = np.array([[6.0, 8.0, 0.0], [6.0, 8.01, 0.0], [29.9, 0.0, 0.0], [21.3, 21.3, 0.0]])
+    assert len(filter_points(cloud, DescriptorParams(voxel_size=0.5, max_range=10.0))) == 1
+    np.testing.assert_array_equal(filter_points(cloud, DescriptorParams(voxel_size=0.5)),
+                                  cloud[:3])
+    assert len(filter_points(cloud, DescriptorParams(voxel_size=0.5, crop="square"))) == 4
 
 
 def test_empty_or_all_nan_cloud_is_refused():
