@@ -27,8 +27,7 @@ from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, SIMULATION_VERSION, WORLDS, 
 
 DEFAULT_METHODS = ("mf-lpr", "scan-context")
 TABLE_COLUMNS = ("recall_at_1", "recall_at_1_corrected", "recall_at_5", "candidate_recall",
-                 "rte_mean_m",
-                 "rre_mean_deg", "success_rate", "f1_max", "closures_published",
+                 "rte_mean_m", "rre_mean_deg", "success_rate", "f1_max", "closures_published",
                  "closures_false", "precision_published", "recall_published",
                  "recall_at_100_precision", "ms_per_query")
 
