@@ -67,10 +67,9 @@ def test_a_dense_sensor_seeing_far_keeps_a_window_holding_most_of_its_returns():
     town seen to 60 m keeps a window holding the nearer 75 % of its returns; a forest's short
     sight lines keep the rule's voxel."""
     def profile(held_m: float, occupied: float = 2700.0, p95_m: float = 60.0) -> SensorProfile:
-        return SensorProfile(n_scans=12, occupied_voxels=occupied, returns_per_voxel=4.5,
-                             ground_below_sensor_m=1.7, horizontal_fov_deg=360.0,
-                             heading_deg=0.0, tilt_spread_deg=0.5, range_p95_m=p95_m,
-                             range_held_m=held_m)
+        return SensorProfile(n_scans=12, occupied_voxels=occupied, ground_below_sensor_m=1.7,
+                             horizontal_fov_deg=360.0, heading_deg=0.0, tilt_spread_deg=0.5,
+                             range_p95_m=p95_m, range_held_m=held_m)
 
     town = auto_descriptor(profile(26.4), DescriptorParams())
     assert town.voxel_size == pytest.approx(0.44) and town.extent_m >= 2 * 26.4 - 0.5

@@ -9,13 +9,21 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.auto_params import SensorProfile, auto_descriptor, needs_submaps
+from mf_lpr_ros.core.auto_params import (
+    SensorProfile,
+    auto_descriptor,
+    measure_sensor,
+    needs_submaps,
+)
+from mf_lpr_ros.core.descriptor import one_point_per_voxel
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.submaps import SubmapSequence, with_submaps
+from mf_lpr_ros.sim.lidar import MID360, VLP16, cast
+from mf_lpr_ros.sim.simulator import urban_traversals
 
 
 def planar_pose(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:
@@ -163,15 +171,38 @@ def test_single_scans_when_the_window_is_off_or_there_is_no_odometry():
     assert with_submaps(sequence, window(3.0)) is sequence
 
 
-def _profile(fov: float, returns_per_voxel: float) -> SensorProfile:
-    return SensorProfile(n_scans=12, occupied_voxels=900.0, returns_per_voxel=returns_per_voxel,
-                         ground_below_sensor_m=1.0, horizontal_fov_deg=fov, heading_deg=0.0,
-                         tilt_spread_deg=0.5, range_p95_m=40.0, range_held_m=20.0)
+def _profile(fov: float, occupied_voxels: float) -> SensorProfile:
+    return SensorProfile(n_scans=12, occupied_voxels=occupied_voxels, ground_below_sensor_m=1.0,
+                         horizontal_fov_deg=fov, heading_deg=0.0, tilt_spread_deg=0.5,
+                         range_p95_m=40.0, range_held_m=20.0)
 
 
 def test_auto_gives_narrow_and_sparse_sensors_submaps_and_dense_ones_single_scans():
     base = Config().descriptor
-    assert not needs_submaps(_profile(360.0, 8.0))
-    assert auto_descriptor(_profile(360.0, 8.0), base).submap_m == 0.0
-    assert auto_descriptor(_profile(70.0, 8.0), base).submap_m > 0
-    assert auto_descriptor(_profile(360.0, 1.4), base).submap_m > 0
+    assert not needs_submaps(_profile(360.0, 1600.0))
+    assert auto_descriptor(_profile(360.0, 1600.0), base).submap_m == 0.0
+    assert auto_descriptor(_profile(70.0, 1600.0), base).submap_m > 0
+    assert auto_descriptor(_profile(360.0, 850.0), base).submap_m > 0
+
+
+def _sweeps(sensor, n: int = 4) -> list[np.ndarray]:
+    traversals = urban_traversals(seed=5)
+    rng = np.random.default_rng(0)
+    poses = [pose_matrix(np.array([x, y, sensor.mount_height_m]), quaternion_from_yaw(yaw))
+             for x, y, yaw in traversals.first[:: len(traversals.first) // n][:n]]
+    return [cast(traversals.scene, sensor, pose, rng) for pose in poses]
+
+
+def test_auto_reads_sparseness_from_what_a_scan_covers_not_from_returns_per_surface():
+    """A longer integration (every return four times, 5 mm apart) leaves a sparse sensor sparse,
+    and downsampling a dense one to 0.3 m leaves it dense: real sensors differ in both (BALM's
+    scans give 8.4 returns per occupied voxel as .bin files, 5.0 as the bag)."""
+    rng = np.random.default_rng(1)
+    mid360 = _sweeps(MID360)
+    integrated = [np.concatenate([c + rng.normal(0.0, 0.005, c.shape).astype(np.float32)
+                                  for _ in range(4)]) for c in mid360]
+    assert needs_submaps(measure_sensor(mid360))
+    assert needs_submaps(measure_sensor(integrated))
+    vlp16 = _sweeps(VLP16)
+    assert not needs_submaps(measure_sensor(vlp16))
+    assert not needs_submaps(measure_sensor([one_point_per_voxel(c, 0.3) for c in vlp16]))
