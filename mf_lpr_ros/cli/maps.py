@@ -75,7 +75,8 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
         reference_map = build_global_map(args.global_map, config, trajectory=trajectory,
                                          render=render, progress=not args.quiet,
                                          workers=args.workers, client=client,
-                                         tiles_folder=args.tiles_dir)
+                                         tiles_folder=args.tiles_dir,
+                                         keep_clouds=args.keep_clouds)
     reference_map.save(args.out)
     area = reference_map.metadata["grid_area_km2"]
     print(f"wrote {args.out}: {len(reference_map)} references rendered from {args.global_map} "
@@ -144,7 +145,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     build.add_argument("--out", required=True, help="map file to write (atomically)")
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",
-                       help="store reference clouds in the map (enables ICP refinement)")
+                       help="store reference clouds in the map (enables ICP refinement); with "
+                            "--global-map, each reference keeps the global cloud around it")
     add_common(build)
     build.set_defaults(handler=cmd_build_map)
     accumulate = commands.add_parser(

@@ -11,7 +11,12 @@ traversable area:
   descriptor window around it, heights relative to it (so the presets' height bands apply),
   and only what a LiDAR there would return: the nearest point per beam direction
   (RenderParams' angular resolution and vertical field of view), described as a reference
-  scan with yaw 0 (the search covers every rotation).
+  scan with yaw 0 (the search covers every rotation);
+- when the map keeps clouds (asked, or search.verify_fitness > 0: ICP verification), each
+  reference's cloud is the global cloud around it, everything a match's query may overlap
+  (the descriptor window widened by max_shift_m), thinned to the descriptor's voxel and put in
+  the reference's frame, so that ICP verifies a match against the map itself, as it verifies
+  against a keyframe's scan in a map of scans.
 The cloud is sorted by square tiles into a memory-mapped file of x, y, z columns, so a view
 reads only the tiles it overlaps and a map of a few km^2 builds on a workstation. A view costs
 ~5 ms: the nearest return per direction is one integer minimum per bin, not a sort. Views are
@@ -41,6 +46,7 @@ from scipy import ndimage
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.descriptor import cap_patches, describe_points, one_point_per_voxel, scan_seed
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
+from mf_lpr_ros.core.references import keeps_clouds
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, read_global_cloud
@@ -242,7 +248,8 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                      render: RenderParams = RenderParams(), progress: bool = True,
                      points: np.ndarray | None = None, workers: int | None = None,
                      client: Any = None, tiles_folder: str | Path | None = None,
-                     report: Callable[[str], None] | None = None) -> ReferenceMap:
+                     report: Callable[[str], None] | None = None,
+                     keep_clouds: bool = False) -> ReferenceMap:
     """A ReferenceMap of references rendered from the global cloud at cloud_path (or points,
     already read) on a grid over the traversable area (see the module doc).
 
@@ -252,7 +259,8 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     distributed.Client whose workers render instead (workers is then ignored); tiles_folder:
     where the tiled cloud is written for the renderers (default: a temporary folder, which
     workers on other machines cannot see). report: where the estimate made before rendering
-    goes (None: stderr when progress is on).
+    goes (None: stderr when progress is on). keep_clouds: give every reference its cloud
+    (see the module doc; also whenever config.search.verify_fitness > 0).
     """
     if config.auto:
         raise ValueError("preset auto measures scans; a global map has none: name a preset")
@@ -287,6 +295,10 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
     cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m,
                        tiles_folder)
+    reference_clouds = (TiledCloud(one_point_per_voxel(points, params.voxel_size), render.tile_m,
+                                   tiles_folder)
+                        if keeps_clouds(config.search, keep_clouds) else None)
+    cloud_half_m = params.extent_m / 2 + config.search.max_shift_m
     global _RENDERER
     _RENDERER = _Renderer(cloud, positions, grounds, params, render, height, headings)
     try:
@@ -298,6 +310,11 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
         for index, views in progress_bar(rendered, total=len(positions),
                                          desc="render references", enabled=progress,
                                          unit="position"):
+            origin = np.array([positions[index, 0], positions[index, 1],
+                               grounds[index] + height])
+            around = (_cloud_around(reference_clouds, origin, cloud_half_m)
+                      if reference_clouds is not None and any(v is not None for v in views)
+                      else None)
             for heading, packed in zip(headings, views):
                 if packed is None:
                     continue
@@ -306,19 +323,28 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                 pose = np.eye(4)
                 pose[:2, :2] = [[np.cos(heading), -np.sin(heading)],
                                 [np.sin(heading), np.cos(heading)]]
-                pose[:3, 3] = [positions[index, 0], positions[index, 1],
-                               grounds[index] + height]
+                pose[:3, 3] = origin
                 # Capped here, in map order, with the seed a one-process build gives it.
                 reference_map.append(cap_patches(occupied, params, scan_seed(params, added)),
-                                     pose, 0.0, index)
+                                     pose, 0.0, index,
+                                     None if around is None else around @ pose[:3, :3])
                 added += 1
     finally:
         _RENDERER = None
         cloud.close()
+        if reference_clouds is not None:
+            reference_clouds.close()
     if not len(reference_map):
         raise InvalidCloudError(f"{cloud_path}: no reference could be rendered (nothing within "
                                 "the descriptor's window and height band)")
     return reference_map
+
+
+def _cloud_around(cloud: TiledCloud, origin: np.ndarray, half_m: float) -> np.ndarray:
+    """The cloud's points within half_m of origin in x and y, relative to origin (world
+    axes)."""
+    points = cloud.near(float(origin[0]), float(origin[1]), half_m).T - origin.astype(np.float32)
+    return points[(np.abs(points[:, 0]) < half_m) & (np.abs(points[:, 1]) < half_m)]
 
 
 @dataclass

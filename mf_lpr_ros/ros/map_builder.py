@@ -121,7 +121,8 @@ class MapBuilderNode(LidarNode):
         try:
             reference_map = build_global_map(f"topic {self.settings.global_map_topic}",
                                              self._global_config, points=points, render=render,
-                                             progress=False, workers=1)
+                                             progress=False, workers=1,
+                                             keep_clouds=self.settings.keep_clouds)
             reference_map.frame_id = self.settings.inputs.map_frame_id or frame
             reference_map.save(self._global_path)
         except (InvalidCloudError, ValueError, OSError, MapFileError) as error:

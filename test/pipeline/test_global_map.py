@@ -1,15 +1,18 @@
 """Global point-cloud maps: accumulate, render references on a grid, relocalise off the path."""
 
 import csv
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw, wrap_angle
+from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
@@ -286,3 +289,36 @@ def test_a_narrow_sensor_relocalises_on_a_grid_recording_a_long_query_window(tow
                       if float(row["gt_x"]) >= 40.0]
         within_1m[window_m] = np.mean(np.array(errors) <= 1.0)
     assert within_1m[20.0] >= 0.6 and within_1m[20.0] >= within_1m[0.0] + 0.3, within_1m
+
+
+def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_reference(town):
+    """Each reference's cloud is the global cloud around it in the reference's frame, so ICP
+    verifies a match against the map: a scan of the mapped street passes, a scan of another
+    street, matched to the same grid, does not."""
+    pytest.importorskip("open3d")
+    traversals, cloud = town
+    verifying = replace(CONFIG, search=replace(CONFIG.search, verify_fitness=0.68))
+    mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(30.0, 70.0, 2.0)])
+    render = RenderParams(spacing_m=6.0, elevation_deg=(-15.0, 15.0))
+    grid = build_global_map("town.pcd", verifying, trajectory=mapping, points=cloud,
+                            render=render, progress=False, workers=1)
+    assert grid.has_clouds
+    assert not build_global_map("town.pcd", CONFIG, trajectory=mapping, points=cloud,
+                                render=render, progress=False, workers=1).has_clouds
+    # A reference's cloud, moved by the reference's pose, lies on the global cloud.
+    pose = grid.poses[len(grid) // 2]
+    world = grid.cloud(len(grid) // 2) @ pose[:3, :3].T + pose[:3, 3]
+    assert len(world) > 1000
+    assert np.percentile(cKDTree(cloud[:, :3]).query(world)[0], 99) < 0.05
+    half = verifying.descriptor.extent_m / 2 + verifying.search.max_shift_m
+    assert np.abs(world[:, :2] - pose[:2, 3]).max() < half + 1e-3
+
+    index = MatchedFilterIndex(grid, verifying.search)
+
+    def fitness(x, y, yaw):
+        points = _scan(traversals, x, y, yaw, seed=5)
+        match = index.query(describe_points(points, verifying.descriptor))
+        return refine_match(match, points, grid).fitness
+
+    assert fitness(47.0, 1.0, 0.3) >= 0.68 and fitness(35.0, -2.0, 1.0) >= 0.68
+    assert fitness(50.0, 100.0, 0.0) < 0.68 and fitness(100.0, 70.0, 1.0) < 0.68
