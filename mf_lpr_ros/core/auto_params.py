@@ -179,14 +179,16 @@ def sample_indices(n_scans: int, count: int = SAMPLE_SCANS) -> np.ndarray:
 
 def describe_choice(profile: SensorProfile, params: DescriptorParams) -> str:
     """One line for the log: what was measured and chosen."""
-    ground = (f"ground {profile.ground_below_sensor_m:.2f} m below the sensor"
-              if math.isfinite(profile.ground_below_sensor_m) else "no ground found")
+    ground = (f"ground {profile.ground_below_sensor_m:.2f} m below the sensor -> z from "
+              f"{params.z_min} m" if math.isfinite(profile.ground_below_sensor_m)
+              else "no ground found -> z " + ("unbounded below" if params.z_min is None
+                                               else f"from {params.z_min} m (as given)"))
     narrow = (f" (under {FULL_CIRCLE_BELOW_DEG:.0f}: revisits from other headings share "
               f"no ground)" if profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG else "")
     return (f"preset auto on {profile.n_scans} scans: {profile.occupied_voxels:.0f} occupied 1 m "
             f"voxels/scan, {WINDOW_HOLDS_PERCENT:.0f} % / 95 % of points within "
             f"{profile.range_held_m:.0f} / {profile.range_p95_m:.0f} m -> voxel "
-            f"{params.voxel_size:.2f} m; {ground} -> z from {params.z_min} m; "
+            f"{params.voxel_size:.2f} m; {ground}; "
             f"level {params.level}; field of view {profile.horizontal_fov_deg:.0f} deg{narrow}; "
             f"{'sparse' if is_sparse(profile) else 'dense'} "
             f"(under {SPARSE_OCCUPIED_VOXELS:.0f} voxels is sparse) -> "

@@ -11,6 +11,7 @@ from mf_lpr_ros.core.auto_params import (
     SensorProfile,
     auto_config,
     auto_descriptor,
+    describe_choice,
     measure_sensor,
 )
 from mf_lpr_ros.core.descriptor import voxel_size_for_density
@@ -155,3 +156,19 @@ def test_live_map_builder_holds_scans_until_auto_is_derived(world):
         0.5 - builder.map.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"], abs=0.006)
     # Every scan moved >= 2 m: the held-back scans became references too, in order.
     assert list(builder.map.source_indices) == list(range(len(trajectory)))
+
+
+def test_the_logged_choice_names_the_height_floor_and_the_sparseness_it_measured():
+    def profile(ground_m: float, occupied: float) -> SensorProfile:
+        return SensorProfile(n_scans=12, occupied_voxels=occupied, ground_below_sensor_m=ground_m,
+                             horizontal_fov_deg=360.0, heading_deg=0.0, tilt_spread_deg=0.5,
+                             range_p95_m=40.0, range_held_m=20.0)
+
+    sparse = profile(math.nan, 700.0)
+    line = describe_choice(sparse, auto_descriptor(sparse, DescriptorParams()))
+    assert "no ground found -> z unbounded below" in line
+    assert "700 occupied 1 m voxels/scan" in line and "sparse" in line and "submaps of 3 m" in line
+    dense = profile(1.7, 2000.0)
+    line = describe_choice(dense, auto_descriptor(dense, DescriptorParams()))
+    assert "ground 1.70 m below the sensor -> z from -1.2 m" in line
+    assert "dense" in line and line.endswith("single scans")
