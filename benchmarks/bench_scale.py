@@ -20,6 +20,9 @@ Queries are references turned by a random quarter turn.
 square) tiled to A km^2, rendered at 2 m on --workers processes (build time measured), then
 started twice and queried with simulated VLP-16 scans from the town's drive. The copies are
 identical, so a match counts as found when it lies within 1 m of the scan modulo the tiling.
+With --grid-clouds the grid keeps its site cloud (core.site_cloud, as a grid that verifies by
+ICP does), and every town query is also verified by ICP against it (refine_match): the table
+then adds the ICP's median ms and how many matches reach the `handheld` preset's fitness.
 
 --reuse takes the maps a --keep run left in --work instead of making them again (their make
 time is then not measured), so that search settings such as --rotation-step-deg can be
@@ -45,6 +48,7 @@ from mf_lpr_ros.core.descriptor import describe_points, rotate_occupancy
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.prefilter_cache import cache_path
+from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
@@ -53,6 +57,7 @@ from mf_lpr_ros.sim.scenes import scene_cloud
 from mf_lpr_ros.sim.simulator import urban_traversals
 
 SPACING_M = 2.0
+VERIFY_FITNESS = preset("handheld").search.verify_fitness
 POOL = 4096
 TOWN_PERIOD_M = 256.0
 
@@ -79,8 +84,9 @@ def generated_map_file(n_refs: int, path: Path) -> float:
     return time.perf_counter() - started
 
 
-def rendered_grid_file(km2: float, path: Path, workers: int) -> float:
-    """Render the simulator's town tiled to km2 into path; returns the seconds it took."""
+def rendered_grid_file(km2: float, path: Path, workers: int, keep_clouds: bool) -> float:
+    """Render the simulator's town tiled to km2 into path (with its site cloud when
+    keep_clouds); returns the seconds it took."""
     town = urban_traversals()
     cloud = scene_cloud(town.scene)
     copies = max(1, round(np.sqrt(km2 * 1e6) / TOWN_PERIOD_M))
@@ -92,21 +98,25 @@ def rendered_grid_file(km2: float, path: Path, workers: int) -> float:
     started = time.perf_counter()
     grid = build_global_map("tiled town", preset("kitti"), points=tiled, workers=workers,
                             render=RenderParams(spacing_m=SPACING_M, elevation_deg=(
-                                min(elevations), max(elevations))))
+                                min(elevations), max(elevations))),
+                            keep_clouds=keep_clouds)
     seconds = time.perf_counter() - started
     grid.save(path)
     return seconds
 
 
-def _town_queries(count: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(occupancy, x y) of simulated scans at random stations of the town's drive."""
+def _town_queries(count: int, rng: np.random.Generator
+                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(occupancy, x y, points) of simulated scans at random stations of the town's drive."""
     town = urban_traversals()
     params = preset("kitti").descriptor
     height = town.sensor.mount_height_m
     stations = town.first[rng.choice(len(town.first), count, replace=False)]
-    return [(describe_points(cast(town.scene, town.sensor, pose_matrix(
-        np.array([x, y, height]), quaternion_from_yaw(yaw)), rng), params), np.array([x, y]))
-        for x, y, yaw in stations]
+    scans = [cast(town.scene, town.sensor, pose_matrix(np.array([x, y, height]),
+                                                      quaternion_from_yaw(yaw)), rng)
+             for x, y, yaw in stations]
+    return [(describe_points(points, params), station[:2], points)
+            for points, station in zip(scans, stations)]
 
 
 def _memory_mb() -> tuple[float, float]:
@@ -129,13 +139,17 @@ def measure_start(path: Path, n_queries: int, town: bool, rotation_step_deg: flo
         # Quarter turns map cells onto cells: generated noise has no structure to survive a
         # resampling, real scans do.
         queries = [(rotate_occupancy(index.map.occupancy(int(reference)),
-                                     np.array([90.0 * rng.integers(4)]))[0], int(reference))
+                                     np.array([90.0 * rng.integers(4)]))[0], int(reference), None)
                    for reference in rng.choice(len(index), n_queries + 1, replace=False)]
-    timings, found = [], 0
-    for query, truth in queries:
+    timings, found, icp_ms, verified = [], 0, [], 0
+    for query, truth, points in queries:
         began = time.perf_counter()
         match = index.query(query)
         timings.append((time.perf_counter() - began) * 1e3)
+        if points is not None and index.map.has_clouds:
+            began = time.perf_counter()
+            verified += int(refine_match(match, points, index.map).fitness >= VERIFY_FITNESS)
+            icp_ms.append((time.perf_counter() - began) * 1e3)
         if town:
             error = (match.pose[:2] - truth + TOWN_PERIOD_M / 2) % TOWN_PERIOD_M - TOWN_PERIOD_M / 2
             found += int(np.hypot(*error) <= 1.0)
@@ -144,6 +158,7 @@ def measure_start(path: Path, n_queries: int, town: bool, rotation_step_deg: flo
     resident, peak = _memory_mb()
     return {"start_s": start_s, "ms": float(np.median(timings[1:])), "found": found,
             "queries": len(queries), "index_mb": index.nbytes / 2 ** 20,
+            "icp_ms": float(np.median(icp_ms[1:])) if icp_ms else None, "verified": verified,
             "references": len(index), "on_demand": index.spectra_on_demand,
             "rss_mb": resident, "peak_mb": peak}
 
@@ -168,6 +183,8 @@ def main() -> None:
     parser.add_argument("--grid-km2", type=float, help="also render the simulator's town "
                         "tiled to this many km^2 and measure it (1 km^2: ~250k references)")
     parser.add_argument("--workers", type=int, default=2, help="rendering processes")
+    parser.add_argument("--grid-clouds", action="store_true", help="the grid keeps its site "
+                        "cloud and town queries are verified by ICP against it")
     parser.add_argument("--reuse", action="store_true",
                         help="use the maps a --keep run left in --work")
     parser.add_argument("--rotation-step-deg", type=float,
@@ -180,7 +197,8 @@ def main() -> None:
         if action == "generate":
             result = {"seconds": generated_map_file(int(number), path)}
         elif action == "render":
-            result = {"seconds": rendered_grid_file(float(number), path, args.workers)}
+            result = {"seconds": rendered_grid_file(float(number), path, args.workers,
+                                                    args.grid_clouds)}
         else:
             result = measure_start(path, int(number), town=action == "measure-town",
                                    rotation_step_deg=args.rotation_step_deg)
@@ -197,7 +215,8 @@ def main() -> None:
         if args.reuse and path.exists():
             made = {"seconds": float("nan")}
         else:
-            made = _child(make, str(path), size, "--workers", str(args.workers))
+            made = _child(make, str(path), size, "--workers", str(args.workers),
+                          *(["--grid-clouds"] if args.grid_clouds else []))
         step = ("--rotation-step-deg", str(args.rotation_step_deg))
         first = _child(measure, str(path), str(args.queries), *step)
         second = _child(measure, str(path), str(args.queries), *step)
@@ -208,13 +227,15 @@ def main() -> None:
                      made["seconds"], path.stat().st_size / 2 ** 20,
                      cache.stat().st_size / 2 ** 20 if cache.exists() else 0.0,
                      second["index_mb"], first["start_s"], second["start_s"], second["ms"],
-                     f"{second['found']}/{second['queries']}", second["peak_mb"]))
+                     f"{second['found']}/{second['queries']}", second["peak_mb"],
+                     "-" if second["icp_ms"] is None else
+                     f"{second['icp_ms']:.1f} ({second['verified']}/{second['queries']})"))
         if not args.keep:
             path.unlink()
             cache.unlink(missing_ok=True)
     print_table(("references", "spectra", "generate / render s", "map MB",
                  "prefilter cache MB", "index MB in RAM", "first start s", "restart s",
-                 "ms/query", "found", "peak RSS MB"), rows)
+                 "ms/query", "found", "peak RSS MB", "ICP ms (verified)"), rows)
 
 
 if __name__ == "__main__":

@@ -187,7 +187,8 @@ class SearchParams:
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
         is then published. Needs maps that keep clouds: a map built with a config that
         verifies this way keeps them (as with keep_clouds), and so does loop_closure mode; a
-        grid rendered from a global cloud then keeps the cloud around each reference. On
+        grid rendered from a global cloud then keeps its site cloud, from which each
+        reference's cloud is cut (core.site_cloud). On
         the BALM handheld sequence confidence alone cannot separate true revisits from
         look-alike places (both reach 0.36-0.40); ICP fitness does (true revisits 0.71-0.85 but
         two at 0.64-0.66, look-alikes <= 0.66): the handheld preset uses 0.68. Not a default

@@ -106,6 +106,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         "frame_id": reference_map.frame_id,
         "sensor_frame_id": reference_map.sensor_frame_id,
         "keeps_clouds": reference_map.has_clouds,
+        "site_cloud_points": (None if reference_map.site_cloud is None
+                              else len(reference_map.site_cloud.points)),
         "extent_xy_m": (poses[:, :2].min(0).tolist(), poses[:, :2].max(0).tolist())
         if len(poses) else None,
         "metadata": reference_map.metadata,
@@ -146,7 +148,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     build.add_argument("--spacing-m", type=float, help="distance between references (default 2.0)")
     build.add_argument("--keep-clouds", action="store_true",
                        help="store reference clouds in the map (enables ICP refinement); with "
-                            "--global-map, each reference keeps the global cloud around it")
+                            "--global-map, the map keeps the global cloud once and cuts "
+                            "each reference's cloud from it")
     add_common(build)
     build.set_defaults(handler=cmd_build_map)
     accumulate = commands.add_parser(

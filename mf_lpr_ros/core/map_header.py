@@ -26,7 +26,9 @@ ALIGN = 64
 MAX_REFERENCES = 1 << 32
 # The dtype save writes for each array, and its shape with n = n_references and D = size.
 ARRAY_DTYPES = {"occupancy_bits": "|u1", "poses": "<f8", "stamps": "<f8",
-                "source_indices": "<i8", "cloud_points": "<f4", "cloud_offsets": "<i8"}
+                "source_indices": "<i8", "cloud_points": "<f4", "cloud_offsets": "<i8",
+                "site_points": "<f4", "site_tile_keys": "<i8", "site_tile_offsets": "<i8"}
+SITE_ARRAYS = ("site_points", "site_tile_keys", "site_tile_offsets")
 REQUIRED_ARRAYS = ("occupancy_bits", "poses", "stamps", "source_indices")
 _ENTRY_KEYS = {"offset", "dtype", "shape", "crc32"}
 
@@ -53,6 +55,8 @@ class MapHeader:
     sensor_frame_id: str
     metadata: dict
     arrays: dict[str, ArrayEntry]
+    # (tile_m, half_m) of the site cloud (core.site_cloud), None without one.
+    site_cloud: tuple[float, float] | None = None
 
 
 def parse_header(header_bytes: bytes, data_start: int, file_size: int) -> MapHeader:
@@ -64,8 +68,8 @@ def parse_header(header_bytes: bytes, data_start: int, file_size: int) -> MapHea
              "a non-negative integer", n_refs)
     for name in ("frame_id", "sensor_frame_id", "writer"):
         _require(isinstance(header.get(name, ""), str), name, "a string", header.get(name))
-    _require(_is_int(header.get("format_version", 1)), "format_version", "an integer",
-             header.get("format_version"))
+    version = header.get("format_version", 1)
+    _require(_is_int(version), "format_version", "an integer", version)
     metadata = header.get("metadata", {})
     _require(isinstance(metadata, dict), "metadata", "a JSON object", metadata)
     descriptor = header.get("descriptor")
@@ -75,10 +79,28 @@ def parse_header(header_bytes: bytes, data_start: int, file_size: int) -> MapHea
         params = descriptor_params_from_dict({"crop": "square", **descriptor})
     except ConfigError as error:
         raise MapFileError(f"invalid map header: descriptor: {error}") from None
+    site_cloud = _site_cloud(header.get("site_cloud"), version)
     arrays = _array_table(header.get("arrays"), n_refs, params)
+    _require(("site_points" in arrays) == (site_cloud is not None), "arrays",
+             f"to hold {list(SITE_ARRAYS)} exactly when the header has site_cloud",
+             sorted(arrays))
     _check_extents(arrays, data_start, file_size)
     return MapHeader(params, n_refs, header.get("frame_id", "map"),
-                     header.get("sensor_frame_id", ""), metadata, arrays)
+                     header.get("sensor_frame_id", ""), metadata, arrays, site_cloud)
+
+
+def _site_cloud(site: Any, version: int) -> tuple[float, float] | None:
+    if site is None:
+        return None
+    _require(version >= 2, "site_cloud", "absent from a version 1 map", site)
+    _require(isinstance(site, dict) and set(site) == {"tile_m", "half_m"}, "site_cloud",
+             "an object with exactly ['half_m', 'tile_m']", site)
+    for name in ("tile_m", "half_m"):
+        value = site[name]
+        _require(isinstance(value, (int, float)) and not isinstance(value, bool)
+                 and 0 < value < 1e6, f"site_cloud.{name}", "a positive number of metres",
+                 value)
+    return float(site["tile_m"]), float(site["half_m"])
 
 
 def check_cloud_offsets(offsets: np.ndarray, n_points: int) -> None:
@@ -122,12 +144,21 @@ def _array_table(table: Any, n_refs: int, params: DescriptorParams) -> dict[str,
     _require(not missing, "arrays", f"to hold {list(REQUIRED_ARRAYS)}", f"missing {missing}")
     _require(("cloud_points" in table) == ("cloud_offsets" in table), "arrays",
              "to hold cloud_points and cloud_offsets together or neither", sorted(table))
+    _require(len({name in table for name in SITE_ARRAYS}) == 1, "arrays",
+             f"to hold {list(SITE_ARRAYS)} together or none of them", sorted(table))
     entries = {name: _entry(name, entry) for name, entry in table.items()}
     expected = {"occupancy_bits": (n_refs, params.size * params.size // 8),
                 "poses": (n_refs, 4, 4), "stamps": (n_refs,), "source_indices": (n_refs,),
                 "cloud_offsets": (n_refs + 1,)}
-    if "cloud_points" in entries:
-        expected["cloud_points"] = (entries["cloud_points"].shape[0], 3)
+    for name in ("cloud_points", "site_points"):
+        if name in entries:
+            expected[name] = (*entries[name].shape[:1], 3)
+    if "site_tile_keys" in entries:
+        keys_shape = entries["site_tile_keys"].shape
+        _require(len(keys_shape) == 1, "arrays.site_tile_keys.shape", "[tiles]",
+                 list(keys_shape))
+        expected["site_tile_keys"] = keys_shape
+        expected["site_tile_offsets"] = (keys_shape[0] + 1,)
     for name, entry in entries.items():
         _require(entry.shape == expected[name], f"arrays.{name}.shape",
                  f"{list(expected[name])} for {n_refs} references", list(entry.shape))
@@ -152,7 +183,9 @@ def _entry(name: str, entry: Any) -> ArrayEntry:
 
 def _check_extents(arrays: dict[str, ArrayEntry], data_start: int, file_size: int) -> None:
     end = data_start
-    for name, entry in sorted(arrays.items(), key=lambda item: item[1].offset):
+    # An empty array occupies no bytes, so it may share its offset with the next array.
+    for name, entry in sorted(arrays.items(), key=lambda item: (item[1].offset,
+                                                                 item[1].nbytes > 0)):
         _require(entry.offset >= end, f"arrays.{name}.offset",
                  f">= {end} (past the header and the arrays before it)", entry.offset)
         end = entry.offset + entry.nbytes

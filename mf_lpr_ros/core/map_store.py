@@ -9,6 +9,9 @@ Layout (little-endian):
     header: UTF-8 JSON, H bytes              parameters, frames, array table
     padding to a 64-byte boundary, then each array at its recorded offset
 
+Version 2 adds the site cloud (three arrays and the header's "site_cloud": tile_m, half_m);
+a map without one is written as version 1.
+
 Every array carries its CRC32 in the header. Occupancy is stored as packed bits. Loading
 memory-maps the arrays, so a large map costs page cache, not twice its size in RAM; all checks
 (magic, version, header and array checksums, sizes) happen at load, never mid-search.
@@ -38,12 +41,16 @@ from mf_lpr_ros.core.map_header import (
     parse_header,
 )
 from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.core.site_cloud import SiteCloud
 from mf_lpr_ros.errors import MapFileError, MapParameterMismatch
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.version import __version__
 
 MAGIC = b"MFLPRMAP"
-FORMAT_VERSION = 1
+# Version 2 added the site cloud. A map without one is written as version 1, the same bytes as
+# before, so earlier builds still read it; one with a site cloud is refused by them by version.
+FORMAT_VERSION = 2
+_SITE_CLOUD_VERSION = 2
 # metadata["kind"] of a map rendered from a global point cloud (pipeline.global_map): its
 # references are complete virtual views, not scans.
 GLOBAL_MAP_KIND = "global_map_grid"
@@ -58,7 +65,9 @@ class ReferenceMap:
     occupancy_bits: (n, D*D/8) uint8, packed high-resolution occupancy (patch cap applied).
     poses: (n, 4, 4) world_T_sensor. stamps: (n,) seconds. source_indices: (n,) index of each
     reference's scan in the sequence it came from. Optional reference clouds (for ICP) are
-    kept as one (P, 3) float32 array with (n+1,) offsets.
+    kept either per reference, as one (P, 3) float32 array with (n+1,) offsets, or once for
+    the whole site (core.site_cloud; a grid rendered from a global cloud), from which each
+    reference's cloud is cut when it is asked for.
     """
 
     def __init__(self, params: DescriptorParams, *, frame_id: str = "map",
@@ -74,6 +83,7 @@ class ReferenceMap:
         self._source_indices = np.zeros(0, dtype=np.int64)
         self.cloud_points: np.ndarray | None = None
         self.cloud_offsets: np.ndarray | None = None
+        self.site_cloud: SiteCloud | None = None
         self._pending: list[tuple[np.ndarray, np.ndarray, float, int, np.ndarray | None]] = []
         # A node appends from its scan callback while a timer saves: appends, the flush of
         # pending references and save's snapshot of the arrays happen one at a time.
@@ -150,8 +160,24 @@ class ReferenceMap:
 
     @property
     def has_clouds(self) -> bool:
+        """Every reference has a cloud (its own or cut from the site cloud)."""
+        self._flush_pending()
+        return self.cloud_offsets is not None or self.site_cloud is not None
+
+    @property
+    def has_reference_clouds(self) -> bool:
+        """Clouds are kept per reference, so every reference appended needs its own."""
         self._flush_pending()
         return self.cloud_offsets is not None
+
+    def set_site_cloud(self, site_cloud: SiteCloud) -> None:
+        """Give every reference, present and future, its cloud from site_cloud."""
+        with self._lock:
+            if self.cloud_offsets is not None or any(entry[4] is not None
+                                                     for entry in self._pending):
+                raise ValueError("this map keeps a cloud per reference; a site cloud would "
+                                 "be a second source of the same clouds")
+            self.site_cloud = site_cloud
 
     def append(self, occupancy: np.ndarray, pose: np.ndarray, stamp: float,
                source_index: int = -1, cloud: np.ndarray | None = None) -> int:
@@ -165,6 +191,9 @@ class ReferenceMap:
         packed = np.packbits(occupancy.astype(bool).ravel())
         kept = None if cloud is None else np.asarray(cloud, dtype=np.float32)[:, :3]
         with self._lock:
+            if cloud is not None and self.site_cloud is not None:
+                raise ValueError("this map's clouds are cut from its site cloud; add "
+                                 "references without one")
             if cloud is not None and self._pending_or_stored_without_clouds():
                 raise ValueError("this map keeps no reference clouds; add every reference "
                                  "without one")
@@ -210,7 +239,10 @@ class ReferenceMap:
         return unpacked.reshape(bits.shape[:-1] + (size, size))
 
     def cloud(self, index: int) -> np.ndarray:
+        """(P, 3) float32 cloud of reference index, in its frame."""
         self._flush_pending()
+        if self.site_cloud is not None:
+            return self.site_cloud.around(self._poses[index])
         if self.cloud_offsets is None or self.cloud_points is None:
             raise MapFileError("this map keeps no reference clouds (build it with clouds kept)")
         start, stop = self.cloud_offsets[index], self.cloud_offsets[index + 1]
@@ -243,10 +275,19 @@ class ReferenceMap:
             if self.cloud_offsets is not None and self.cloud_points is not None:
                 arrays["cloud_points"] = np.ascontiguousarray(self.cloud_points, dtype="<f4")
                 arrays["cloud_offsets"] = np.ascontiguousarray(self.cloud_offsets, dtype="<i8")
+            if self.site_cloud is not None:
+                arrays["site_points"] = np.ascontiguousarray(self.site_cloud.points, dtype="<f4")
+                arrays["site_tile_keys"] = np.ascontiguousarray(self.site_cloud.tile_keys,
+                                                                dtype="<i8")
+                arrays["site_tile_offsets"] = np.ascontiguousarray(self.site_cloud.tile_offsets,
+                                                                   dtype="<i8")
             metadata = copy.deepcopy(self.metadata)
+            site = (None if self.site_cloud is None else
+                    {"tile_m": self.site_cloud.tile_m, "half_m": self.site_cloud.half_m})
         table: dict[str, dict[str, Any]] = {}
+        version = 1 if site is None else _SITE_CLOUD_VERSION
         header: dict[str, Any] = {
-            "format_version": FORMAT_VERSION,
+            "format_version": version,
             "writer": f"mf_lpr_ros {__version__}",
             "n_references": int(len(arrays["stamps"])),
             "descriptor": asdict(self.params),
@@ -255,6 +296,8 @@ class ReferenceMap:
             "metadata": metadata,
             "arrays": table,
         }
+        if site is not None:
+            header["site_cloud"] = site
         # Offsets depend on the header size, which depends on the offsets: iterate to a fixpoint.
         header_bytes = b""
         for _ in range(4):
@@ -268,7 +311,7 @@ class ReferenceMap:
             if encoded == header_bytes:
                 break
             header_bytes = encoded
-        preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes),
+        preamble = _PREAMBLE.pack(MAGIC, version, len(header_bytes),
                                   zlib.crc32(header_bytes))
         write_atomically(path, preamble + header_bytes, arrays, table)
 
@@ -284,6 +327,13 @@ class ReferenceMap:
             loaded = _map_arrays(path, header.arrays, verify)
             if "cloud_offsets" in loaded:
                 check_cloud_offsets(loaded["cloud_offsets"], len(loaded["cloud_points"]))
+            site_cloud = None
+            if header.site_cloud is not None:
+                site_cloud = SiteCloud(loaded["site_points"], loaded["site_tile_keys"],
+                                       loaded["site_tile_offsets"], *header.site_cloud)
+                problem = site_cloud.check()
+                if problem is not None:
+                    raise MapFileError(f"invalid map: {problem}")
         except MapFileError as error:
             raise MapFileError(f"{path}: {error}") from None
         reference_map = cls(header.params, frame_id=header.frame_id,
@@ -298,6 +348,7 @@ class ReferenceMap:
         if "cloud_offsets" in loaded:
             reference_map.cloud_points = loaded["cloud_points"]
             reference_map.cloud_offsets = loaded["cloud_offsets"]
+        reference_map.site_cloud = site_cloud
         return reference_map
 
 
@@ -315,8 +366,8 @@ def _read_header(path: Path) -> tuple[bytes, int, int]:
             if version > FORMAT_VERSION:
                 raise MapFileError(
                     f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
-                    f"this build reads version {FORMAT_VERSION}")
-            if version != FORMAT_VERSION:
+                    f"this build reads versions 1 to {FORMAT_VERSION}")
+            if version < 1:
                 raise MapFileError(f"{path}: unsupported map format version {version}")
             if header_len > MAX_HEADER_BYTES:
                 raise MapFileError(f"{path}: invalid map header length {header_len} (a header "

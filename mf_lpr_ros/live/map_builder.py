@@ -40,9 +40,11 @@ class MapBuilder:
                  submap: Submap | None = None) -> None:
         self.map_path = None if map_path is None else Path(map_path)
         # A map keeps clouds when asked, when its verification needs them, and (extended)
-        # when it already does: every reference then needs one.
-        self.keep_clouds = keeps_clouds(config.search, keep_clouds) or (
-            reference_map is not None and reference_map.has_clouds)
+        # when it already does: every reference then needs one. A map with a site cloud cuts
+        # every reference's cloud from it, those added here too.
+        site = reference_map is not None and reference_map.site_cloud is not None
+        self.keep_clouds = not site and (keeps_clouds(config.search, keep_clouds) or (
+            reference_map is not None and reference_map.has_reference_clouds))
         self.auto_choice: str | None = None
         self.rejected_while_held = 0
         self._held: list[PairedScan] | None = None

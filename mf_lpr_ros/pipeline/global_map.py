@@ -12,11 +12,12 @@ traversable area:
   and only what a LiDAR there would return: the nearest point per beam direction
   (RenderParams' angular resolution and vertical field of view), described as a reference
   scan with yaw 0 (the search covers every rotation);
-- when the map keeps clouds (asked, or search.verify_fitness > 0: ICP verification), each
-  reference's cloud is the global cloud around it, everything a match's query may overlap
-  (the descriptor window widened by max_shift_m), thinned to the descriptor's voxel and put in
-  the reference's frame, so that ICP verifies a match against the map itself, as it verifies
-  against a keyframe's scan in a map of scans.
+- when the map keeps clouds (asked, or search.verify_fitness > 0: ICP verification), the
+  global cloud thinned to the descriptor's voxel is stored once as the map's site cloud
+  (core.site_cloud), and each reference's cloud is cut from it: everything a match's query
+  may overlap (the descriptor window widened by max_shift_m), in the reference's frame, so
+  that ICP verifies a match against the map itself, as it verifies against a keyframe's scan
+  in a map of scans.
 The cloud is sorted by square tiles into a memory-mapped file of x, y, z columns, so a view
 reads only the tiles it overlaps and a map of a few km^2 builds on a workstation. A view costs
 ~5 ms: the nearest return per direction is one integer minimum per bin, not a sort. Views are
@@ -47,6 +48,7 @@ from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.descriptor import cap_patches, describe_points, one_point_per_voxel, scan_seed
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
 from mf_lpr_ros.core.references import keeps_clouds
+from mf_lpr_ros.core.site_cloud import SiteCloud
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, read_global_cloud
@@ -293,17 +295,18 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
     else:
         workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(positions)))
     # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
+    if keeps_clouds(config.search, keep_clouds):
+        reference_map.set_site_cloud(SiteCloud.from_points(
+            one_point_per_voxel(points, params.voxel_size),
+            half_m=params.extent_m / 2 + config.search.max_shift_m))
     cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m,
                        tiles_folder)
-    reference_clouds = (TiledCloud(one_point_per_voxel(points, params.voxel_size), render.tile_m,
-                                   tiles_folder)
-                        if keeps_clouds(config.search, keep_clouds) else None)
-    cloud_half_m = params.extent_m / 2 + config.search.max_shift_m
     global _RENDERER
     _RENDERER = _Renderer(cloud, positions, grounds, params, render, height, headings)
     try:
         if report is not None:
-            report(_estimate(_RENDERER, workers))
+            site_bytes = 0 if reference_map.site_cloud is None else reference_map.site_cloud.nbytes
+            report(_estimate(_RENDERER, workers, site_bytes))
         added = 0
         rendered = (_rendered_on_cluster(client, _RENDERER, workers) if client is not None
                     else _rendered(workers, len(positions)))
@@ -312,9 +315,6 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                                          unit="position"):
             origin = np.array([positions[index, 0], positions[index, 1],
                                grounds[index] + height])
-            around = (_cloud_around(reference_clouds, origin, cloud_half_m)
-                      if reference_clouds is not None and any(v is not None for v in views)
-                      else None)
             for heading, packed in zip(headings, views):
                 if packed is None:
                     continue
@@ -326,25 +326,15 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
                 pose[:3, 3] = origin
                 # Capped here, in map order, with the seed a one-process build gives it.
                 reference_map.append(cap_patches(occupied, params, scan_seed(params, added)),
-                                     pose, 0.0, index,
-                                     None if around is None else around @ pose[:3, :3])
+                                     pose, 0.0, index)
                 added += 1
     finally:
         _RENDERER = None
         cloud.close()
-        if reference_clouds is not None:
-            reference_clouds.close()
     if not len(reference_map):
         raise InvalidCloudError(f"{cloud_path}: no reference could be rendered (nothing within "
                                 "the descriptor's window and height band)")
     return reference_map
-
-
-def _cloud_around(cloud: TiledCloud, origin: np.ndarray, half_m: float) -> np.ndarray:
-    """The cloud's points within half_m of origin in x and y, relative to origin (world
-    axes)."""
-    points = cloud.near(float(origin[0]), float(origin[1]), half_m).T - origin.astype(np.float32)
-    return points[(np.abs(points[:, 0]) < half_m) & (np.abs(points[:, 1]) < half_m)]
 
 
 @dataclass
@@ -433,8 +423,9 @@ def _rendered(workers: int, count: int) -> Iterator[tuple[int, list[np.ndarray |
             yield from zip(task, views)
 
 
-def _estimate(renderer: _Renderer, workers: int) -> str:
-    """A line saying how many references, how long and how large, from a timed sample."""
+def _estimate(renderer: _Renderer, workers: int, site_bytes: int = 0) -> str:
+    """A line saying how many references, how long and how large (site_bytes: the site cloud
+    the map keeps), from a timed sample."""
     count = len(renderer.positions)
     sample = np.unique(np.linspace(0, count - 1, min(_ESTIMATE_SAMPLE, count)).astype(int))
     started = time.perf_counter()
@@ -442,7 +433,7 @@ def _estimate(renderer: _Renderer, workers: int) -> str:
     per_position = (time.perf_counter() - started) / len(sample)
     references = count * rendered / len(sample)
     seconds = count * per_position / workers
-    megabytes = references * (renderer.params.size ** 2 / 8 + 8 * 18) / 1e6
+    megabytes = (references * (renderer.params.size ** 2 / 8 + 8 * 18) + site_bytes) / 1e6
     duration = f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
     return (f"rendering {count} positions x {len(renderer.headings)} headings: ~{references:.0f} "
             f"references, ~{megabytes:.0f} MB of map, ~{duration} on {workers} "

@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.site_cloud import SiteCloud
 from mf_lpr_ros.errors import MapFileError
 
 _PREAMBLE = struct.Struct("<8sIII")
@@ -34,7 +35,9 @@ def header_edits(draw):
     return draw(st.lists(st.tuples(st.lists(st.sampled_from(
         ["arrays", "occupancy_bits", "poses", "stamps", "source_indices", "cloud_points",
          "cloud_offsets", "offset", "dtype", "shape", "crc32", "descriptor", "size",
-         "voxel_size", "n_references", "metadata", "frame_id", 0, 1, 2]), min_size=1,
+         "voxel_size", "n_references", "metadata", "frame_id", "site_points", "site_tile_keys",
+         "site_tile_offsets", "site_cloud", "tile_m", "half_m", "format_version", 0, 1, 2]),
+        min_size=1,
         max_size=4), st.one_of(st.none(), json_values, st.integers(-10 ** 6, 10 ** 6),
                                st.just([[[[[[[[[[[]]]]]]]]]]] * 3))),
         min_size=1, max_size=3))
@@ -73,10 +76,13 @@ def rewritten(original: bytes, header: dict | bytes) -> bytes:
         body + b"\0" * (start - len(body)) + original[start:]
 
 
-@pytest.fixture(scope="module")
-def saved_map(tmp_path_factory):
+@pytest.fixture(scope="module", params=["reference clouds", "site cloud"])
+def saved_map(tmp_path_factory, request):
     path = tmp_path_factory.mktemp("fuzz") / "map.mfmap"
-    original = make_map(np.random.default_rng(0), clouds=True)
+    rng = np.random.default_rng(0)
+    original = make_map(rng, clouds=request.param == "reference clouds")
+    if request.param == "site cloud":
+        original.set_site_cloud(SiteCloud.from_points(rng.uniform(-40, 40, (500, 3)), 10.0))
     original.save(path)
     data = path.read_bytes()
     _, _, length, _ = _PREAMBLE.unpack(data[:_PREAMBLE.size])
@@ -97,6 +103,11 @@ def assert_loads_original_or_refuses(path, data: bytes, original: ReferenceMap) 
     np.testing.assert_array_equal(loaded.source_indices, original.source_indices)
     np.testing.assert_array_equal(loaded.cloud_points, original.cloud_points)
     np.testing.assert_array_equal(loaded.cloud_offsets, original.cloud_offsets)
+    assert (loaded.site_cloud is None) == (original.site_cloud is None)
+    if original.site_cloud is not None:
+        np.testing.assert_array_equal(loaded.site_cloud.points, original.site_cloud.points)
+        np.testing.assert_array_equal(loaded.site_cloud.tile_offsets,
+                                      original.site_cloud.tile_offsets)
 
 
 def run_crafted_headers(saved_map, tmp_path, edits) -> None:

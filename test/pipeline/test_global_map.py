@@ -16,6 +16,8 @@ from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
+from mf_lpr_ros.live.map_builder import MapBuilder
+from mf_lpr_ros.live.pose_buffer import PairedScan
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, accumulate, read_global_cloud, write_pcd
 from mf_lpr_ros.pipeline.global_map import (
     RenderParams,
@@ -291,10 +293,12 @@ def test_a_narrow_sensor_relocalises_on_a_grid_recording_a_long_query_window(tow
     assert within_1m[20.0] >= 0.6 and within_1m[20.0] >= within_1m[0.0] + 0.3, within_1m
 
 
-def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_reference(town):
-    """Each reference's cloud is the global cloud around it in the reference's frame, so ICP
-    verifies a match against the map: a scan of the mapped street passes, a scan of another
-    street, matched to the same grid, does not."""
+def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_reference(town,
+                                                                                  tmp_path):
+    """Each reference's cloud is the global cloud around it in the reference's frame, cut from
+    one site cloud the map stores once, so ICP verifies a match against the map: a scan of
+    the mapped street passes, a scan of another street, matched to the same grid, does
+    not."""
     pytest.importorskip("open3d")
     traversals, cloud = town
     verifying = replace(CONFIG, search=replace(CONFIG.search, verify_fitness=0.68))
@@ -312,6 +316,17 @@ def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_referenc
     assert np.percentile(cKDTree(cloud[:, :3]).query(world)[0], 99) < 0.05
     half = verifying.descriptor.extent_m / 2 + verifying.search.max_shift_m
     assert np.abs(world[:, :2] - pose[:2, 3]).max() < half + 1e-3
+    # Stored once: the references' clouds together repeat each stored point many times.
+    stored = len(grid.site_cloud.points)
+    assert sum(len(grid.cloud(k)) for k in range(len(grid))) > 3 * stored
+    grid.save(tmp_path / "grid.mfmap")
+    loaded = ReferenceMap.load(tmp_path / "grid.mfmap")
+    np.testing.assert_array_equal(loaded.cloud(len(grid) // 2), grid.cloud(len(grid) // 2))
+    # A scan the map builder adds to the grid gets its cloud from the site cloud too.
+    extender = MapBuilder(verifying, None, reference_map=loaded)
+    added = extender.offer(PairedScan(0, 1.0, _scan(traversals, 41.0, 0.5, 0.2, seed=3),
+                                      _pose(41.0, 0.5, 0.2)))
+    assert added == len(grid) and len(extender.map.cloud(added)) > 1000
 
     index = MatchedFilterIndex(grid, verifying.search)
 
