@@ -50,7 +50,6 @@ MAGIC = b"MFLPRMAP"
 # Version 2 added the site cloud. A map without one is written as version 1, the same bytes as
 # before, so earlier builds still read it; one with a site cloud is refused by them by version.
 FORMAT_VERSION = 2
-_SITE_CLOUD_VERSION = 2
 # metadata["kind"] of a map rendered from a global point cloud (pipeline.global_map): its
 # references are complete virtual views, not scans.
 GLOBAL_MAP_KIND = "global_map_grid"
@@ -285,7 +284,7 @@ class ReferenceMap:
             site = (None if self.site_cloud is None else
                     {"tile_m": self.site_cloud.tile_m, "half_m": self.site_cloud.half_m})
         table: dict[str, dict[str, Any]] = {}
-        version = 1 if site is None else _SITE_CLOUD_VERSION
+        version = 1 if site is None else FORMAT_VERSION
         header: dict[str, Any] = {
             "format_version": version,
             "writer": f"mf_lpr_ros {__version__}",

@@ -3,13 +3,14 @@
 A grid rendered from a global cloud puts references 2 m apart, and ICP needs the cloud a
 match's query may overlap: the descriptor window widened by max_shift_m, ~72 m across. Kept per
 reference, each point would be stored once for every reference that sees it, ~1,300 times at
-2 m (89 references of the Avia site: 34 MB; a square kilometre: ~70 GB). Kept once, the map
+2 m (89 references of the Avia site: 34 MB; a square kilometre: ~200 GB). Kept once, the map
 holds the site's cloud thinned to the descriptor voxel, sorted by square tiles, and a
-reference's cloud is cut from it when a match is verified: a few tiles, a ms.
+reference's cloud is cut from it when a match is verified: a few tiles, ~6 ms for the 57k
+points of a reference in a simulated town.
 
-Points are in the map frame, sorted by tile (row-major in the tile grid), with each non-empty
-tile's key and the offset of its first point; half_m is the half-width of the square cut
-around a reference.
+Points are in the map frame, sorted by tile (column by column, row by row within a column:
+one column's tiles are one run of points), with each non-empty tile's key and the offset of
+its first point; half_m is the half-width of the square cut around a reference.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 # Keys are (column + _KEY_OFFSET) * _KEY_SPAN + (row + _KEY_OFFSET): tile indices within
-# +-2^20 (16,000 km at 16 m tiles) stay distinct and sort row by row.
+# +-2^20 (16,000 km at 16 m tiles) stay distinct and sort column by column.
 _KEY_OFFSET = 1 << 20
 _KEY_SPAN = 1 << 21
 DEFAULT_TILE_M = 16.0

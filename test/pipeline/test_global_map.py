@@ -1,6 +1,7 @@
 """Global point-cloud maps: accumulate, render references on a grid, relocalise off the path."""
 
 import csv
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -294,7 +295,8 @@ def test_a_narrow_sensor_relocalises_on_a_grid_recording_a_long_query_window(tow
 
 
 def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_reference(town,
-                                                                                  tmp_path):
+                                                                                  tmp_path,
+                                                                                  capsys):
     """Each reference's cloud is the global cloud around it in the reference's frame, cut from
     one site cloud the map stores once, so ICP verifies a match against the map: a scan of
     the mapped street passes, a scan of another street, matched to the same grid, does
@@ -322,6 +324,9 @@ def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_referenc
     grid.save(tmp_path / "grid.mfmap")
     loaded = ReferenceMap.load(tmp_path / "grid.mfmap")
     np.testing.assert_array_equal(loaded.cloud(len(grid) // 2), grid.cloud(len(grid) // 2))
+    assert main(["info", str(tmp_path / "grid.mfmap")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["keeps_clouds"] and info["site_cloud_points"] == stored
     # A scan the map builder adds to the grid gets its cloud from the site cloud too.
     extender = MapBuilder(verifying, None, reference_map=loaded)
     added = extender.offer(PairedScan(0, 1.0, _scan(traversals, 41.0, 0.5, 0.2, seed=3),
