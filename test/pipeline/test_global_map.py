@@ -2,6 +2,7 @@
 
 import csv
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -306,11 +307,18 @@ def test_a_grid_that_verifies_by_icp_keeps_the_global_cloud_around_each_referenc
     verifying = replace(CONFIG, search=replace(CONFIG.search, verify_fitness=0.68))
     mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(30.0, 70.0, 2.0)])
     render = RenderParams(spacing_m=6.0, elevation_deg=(-15.0, 15.0))
+    with_clouds, without = [], []
     grid = build_global_map("town.pcd", verifying, trajectory=mapping, points=cloud,
-                            render=render, progress=False, workers=1)
+                            render=render, progress=False, workers=1, report=with_clouds.append)
     assert grid.has_clouds
     assert not build_global_map("town.pcd", CONFIG, trajectory=mapping, points=cloud,
-                                render=render, progress=False, workers=1).has_clouds
+                                render=render, progress=False, workers=1,
+                                report=without.append).has_clouds
+    # The estimate made before rendering counts the site cloud the map will hold.
+    megabytes = [float(re.search(r"~(\d+) MB of map", line).group(1))
+                 for line in with_clouds + without]
+    assert grid.site_cloud.nbytes > 2e6
+    assert abs(megabytes[0] - megabytes[1] - grid.site_cloud.nbytes / 1e6) <= 1.0, megabytes
     # A reference's cloud, moved by the reference's pose, lies on the global cloud.
     pose = grid.poses[len(grid) // 2]
     world = grid.cloud(len(grid) // 2) @ pose[:3, :3].T + pose[:3, 3]
