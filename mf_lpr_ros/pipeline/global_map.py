@@ -294,18 +294,19 @@ def build_global_map(cloud_path: str | Path, config: Config, *,
         workers = max(1, sum(client.nthreads().values()))
     else:
         workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(positions)))
-    # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
+    site_bytes = 0
     if keeps_clouds(config.search, keep_clouds):
-        reference_map.set_site_cloud(SiteCloud.from_points(
-            one_point_per_voxel(points, params.voxel_size),
-            half_m=params.extent_m / 2 + config.search.max_shift_m))
+        site_cloud = SiteCloud.from_points(one_point_per_voxel(points, params.voxel_size),
+                                           half_m=params.extent_m / 2 + config.search.max_shift_m)
+        reference_map.set_site_cloud(site_cloud)
+        site_bytes = site_cloud.nbytes
+    # Half a voxel keeps every occupied voxel of a view occupied, at a fraction of the points.
     cloud = TiledCloud(one_point_per_voxel(points, params.voxel_size / 2), render.tile_m,
                        tiles_folder)
     global _RENDERER
     _RENDERER = _Renderer(cloud, positions, grounds, params, render, height, headings)
     try:
         if report is not None:
-            site_bytes = 0 if reference_map.site_cloud is None else reference_map.site_cloud.nbytes
             report(_estimate(_RENDERER, workers, site_bytes))
         added = 0
         rendered = (_rendered_on_cluster(client, _RENDERER, workers) if client is not None
