@@ -26,6 +26,8 @@ from mf_lpr_ros.params import SearchParams
 
 # As many as the verifier may still confirm: its candidates and the matches awaiting a vouch.
 _UNCONFIRMED_KEPT = 2 * MATCHES_KEPT
+# Appended to LiveMatch.described_from for a scan a levelling map had no pose to level.
+UNLEVELLED = ", not levelled (no pose)"
 
 
 @dataclass
@@ -59,7 +61,10 @@ class Localiser:
     scans come with odometry poses), odometry consistency.
     When the map's descriptor has a submap window (descriptor.submap_m), each scan is described
     with the scans of its window (core.submap): give observe every scan the robot takes, with
-    its odometry pose, searched or not; scans without a pose are described alone.
+    its odometry pose, searched or not; scans without a pose are described alone. Likewise a
+    map that levels its scans (descriptor.level) levels each scan by its pose's roll and
+    pitch, and describes a scan without a pose as the sensor held it (LiveMatch.described_from
+    says so): a tilted sensor then matches less well, a level one as well.
     """
 
     MODES = ("relocalise", "loop_closure")
@@ -146,7 +151,10 @@ class Localiser:
                 submap = self.submap.points_at(stamp)
                 points, described_from, complete = submap.points, submap.describe(), \
                     submap.complete
-        points = descriptor_points(points, pose, params)
+        if pose is None and params.level:
+            described_from += UNLEVELLED
+        else:
+            points = descriptor_points(points, pose, params)
         occupancy = describe_observation(params, reference=False, stamp=stamp, points=points)
         descriptor_ms = (time.perf_counter() - started) * 1e3
         n_active = len(self.map)

@@ -127,9 +127,6 @@ class LocaliserLogic(LidarNodeMixin):
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
-        if config.descriptor.level and not inputs.has_poses:
-            raise ParameterFault("parameter pose_source must name a pose stream: "
-                                 "descriptor.level needs each scan's roll and pitch")
         try:
             self.localiser = Localiser(reference_map, config, mode=settings.mode,
                                        exclude_recent_s=settings.exclude_recent_s,
@@ -191,6 +188,11 @@ class LocaliserLogic(LidarNodeMixin):
                 self.get_logger().info(
                     f"describing each scan with the scans of its last {window.window_m} m of "
                     f"travel (at most {window.max_scans} scans, {window.max_age_s} s)")
+        if config.descriptor.level and not inputs.has_poses:
+            self.get_logger().warning(
+                "the map levels its scans (descriptor.level) but no pose_source gives their roll"
+                " and pitch: scans are described as the sensor holds them, and a tilted sensor"
+                " will match less well; set pose_source")
         if config.search.consistency_min_support > 0 and \
                 not self.localiser.verifier.consistency_active:
             self.get_logger().warning(

@@ -3,6 +3,7 @@ non-repetitive one whose rays fall anywhere in its elevation band (a Livox Mid-3
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -57,18 +58,25 @@ MID360 = SensorModel("Mid-360", tuple(np.linspace(-7.0, 52.0, 8)), azimuth_step_
                      non_repetitive=True)
 
 
+# The same sensor held in the hand of a walker (sim.simulator.handheld_traversals sways it).
+HANDHELD_MID360 = dataclasses.replace(MID360, name="Mid-360 (handheld)", mount_height_m=1.3)
+
+
 def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Generator
          ) -> np.ndarray:
-    """One sweep from a levelled world_T_sensor pose: (N, 3) float32 hits in the sensor frame.
+    """One sweep from a world_T_sensor pose: (N, 3) float32 hits in the sensor frame.
 
     Each primitive is only tested against the azimuth columns its bounding circle covers, so a
-    sweep costs about (primitives x columns they span x beams), not (primitives x rays).
+    sweep costs about (primitives x columns they span x beams), not (primitives x rays). A
+    tilted sensor's rays leave their columns' azimuths (by up to ~13 degrees at 52 degrees of
+    elevation and 10 of tilt): the columns covered widen by as much.
     """
     directions = sensor.directions(rng).reshape(len(sensor.elevations_deg), -1, 3) \
         @ pose[:3, :3].T
     n_columns = directions.shape[1]
     origin = pose[:3, 3]
     yaw = math.atan2(pose[1, 0], pose[0, 0])
+    spread = _columns_off_azimuth(directions, yaw, sensor.azimuth_step_deg)
     local = scene.near(origin[0], origin[1], sensor.max_range_m)
     with np.errstate(divide="ignore", invalid="ignore"):
         distance = np.where(directions[..., 2] < 0, -origin[2] / directions[..., 2], np.inf)
@@ -80,7 +88,7 @@ def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Gen
         if not len(array):
             continue
         primitive, column = _covered_columns(array[:, :2] - origin[:2], bound, yaw,
-                                             sensor.azimuth_step_deg, n_columns)
+                                             sensor.azimuth_step_deg, n_columns, spread)
         rays = directions[:, column].transpose(1, 0, 2)                 # (M, E, 3)
         t = hits(array[primitive], origin, rays)                        # (M, E)
         ray_index = np.arange(directions.shape[0])[None, :] * n_columns + column[:, None]
@@ -91,15 +99,26 @@ def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Gen
     return ((points_world - origin) @ pose[:3, :3]).astype(np.float32)
 
 
+def _columns_off_azimuth(directions: np.ndarray, yaw: float, step_deg: float) -> int:
+    """How many columns beyond its own a ray of directions (E, C, 3) may point: 0 for a level
+    sensor, whose rays stay within their column (a non-repetitive one jitters inside it)."""
+    nominal = yaw + np.radians(np.arange(directions.shape[1]) * step_deg)
+    azimuth = np.arctan2(directions[..., 1], directions[..., 0])
+    off_deg = np.degrees(np.abs((azimuth - nominal[None, :] + np.pi) % (2 * np.pi) - np.pi))
+    # Rounding must not turn a level sensor's in-column jitter into a wider span.
+    return max(0, math.ceil(float(off_deg.max()) / step_deg - 1e-6) - 1)
+
+
 def _covered_columns(offset: np.ndarray, bound: np.ndarray, yaw: float, step_deg: float,
-                     n_columns: int) -> tuple[np.ndarray, np.ndarray]:
-    """(primitive, column) pairs: the azimuth columns within each bounding circle's span."""
+                     n_columns: int, spread: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(primitive, column) pairs: the azimuth columns within each bounding circle's span,
+    widened by spread columns each side."""
     distance = np.hypot(offset[:, 0], offset[:, 1])
     centre = np.degrees(np.arctan2(offset[:, 1], offset[:, 0]) - yaw) / step_deg
     inside = distance <= bound
     half = np.where(inside, n_columns / 2,
                     np.degrees(np.arcsin(np.clip(bound / np.maximum(distance, 1e-9), 0, 1)))
-                    / step_deg + 1)
+                    / step_deg + 1 + spread)
     first = np.floor(centre - half).astype(np.int64)
     width = np.minimum(np.ceil(2 * half).astype(np.int64) + 1, n_columns)
     primitive = np.repeat(np.arange(len(offset)), width)

@@ -14,9 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.pose import (
+    euler_pose,
+    matrix_to_quaternion,
+    pose_matrix,
+    quaternion_from_yaw,
+)
 from mf_lpr_ros.progress import progress_bar
-from mf_lpr_ros.sim.lidar import HDL32, MID360, VLP16, SensorModel, cast
+from mf_lpr_ros.sim.lidar import HANDHELD_MID360, HDL32, MID360, VLP16, SensorModel, cast
 from mf_lpr_ros.sim.scenes import Scene, forest_scene, moved_objects, urban_scene
 
 
@@ -35,13 +40,31 @@ def drive(waypoints: np.ndarray, step_m: float, lateral_offset_m: float = 0.0) -
 
 @dataclass
 class Traversals:
-    """A scene, the sensor and two days' routes: (n, 3) x, y, yaw at 10 Hz."""
+    """A scene, the sensor and two days' routes: (n, 3) x, y, yaw at 10 Hz; and, for a sensor
+    that tilts, each day's (n, 2) roll and pitch in radians (None: level)."""
 
     scene: Scene
     second_day: Scene
     sensor: SensorModel
     first: np.ndarray
     second: np.ndarray
+    first_tilt: np.ndarray | None = None
+    second_tilt: np.ndarray | None = None
+
+
+def sway(route: np.ndarray, seed: int, amplitude_deg: float = 8.0) -> np.ndarray:
+    """(n, 2) roll and pitch of a sensor carried by hand along route (n, 3): two slow waves
+    each (a stride's ~1.5 m, and a few metres), random phases, peaks near amplitude_deg x 1.5
+    (a handheld sensor tilts ~10 degrees typically: config, preset handheld)."""
+    rng = np.random.default_rng(seed)
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(route[:, :2], axis=0).T))])
+    waves = [(1.5, 1.0), (6.0, 0.5)]
+    angles = []
+    for _ in range(2):
+        phases = rng.uniform(0.0, 2 * np.pi, len(waves))
+        angles.append(sum(weight * np.sin(2 * np.pi * travelled / period + phase)
+                          for (period, weight), phase in zip(waves, phases)))
+    return np.radians(amplitude_deg) * np.stack(angles, axis=1)
 
 
 def urban_traversals(seed: int = 7, step_m: float = 1.0) -> Traversals:
@@ -80,7 +103,17 @@ def sparse_traversals(seed: int = 13, step_m: float = 0.5) -> Traversals:
     return Traversals(urban.scene, urban.second_day, MID360, urban.first, urban.second)
 
 
-WORLDS = {"urban": urban_traversals, "forest": forest_traversals, "sparse": sparse_traversals}
+def handheld_traversals(seed: int = 17, step_m: float = 0.5) -> Traversals:
+    """The urban routes of a third town, walked with the sparse sensor in the hand
+    (sim.lidar.HANDHELD_MID360): it sways in roll and pitch (sway), differently each day, and
+    the odometry carries the tilt, as a handheld LiDAR-inertial odometry's does."""
+    urban = urban_traversals(seed, step_m)
+    return Traversals(urban.scene, urban.second_day, HANDHELD_MID360, urban.first,
+                      urban.second, sway(urban.first, seed + 1), sway(urban.second, seed + 2))
+
+
+WORLDS = {"urban": urban_traversals, "forest": forest_traversals, "sparse": sparse_traversals,
+          "handheld": handheld_traversals}
 
 # Bump when the worlds or the bags change: bags written under another version are rewritten.
 SIMULATION_VERSION = 2
@@ -102,6 +135,8 @@ def world_bags(name: str, folder: Path, *, stride: int = 1,
     first = traversals.first[::stride]
     second = traversals.second[::stride] + np.array(
         [day2_offset[0], day2_offset[1], np.radians(day2_offset[2])])
+    first_tilt, second_tilt = (None if tilt is None else tilt[::stride]
+                               for tilt in (traversals.first_tilt, traversals.second_tilt))
     stamp = folder / "simulation.json"
     key = {"version": SIMULATION_VERSION, "world": name, "stride": stride,
            "day2_offset": list(day2_offset), "rate_hz": rate_hz}
@@ -111,9 +146,9 @@ def world_bags(name: str, folder: Path, *, stride: int = 1,
             shutil.rmtree(bag, ignore_errors=True)
         folder.mkdir(parents=True, exist_ok=True)
         write_bag(first_bag, traversals.scene, traversals.sensor, first, seed=1,
-                  rate_hz=rate_hz, progress=progress)
+                  rate_hz=rate_hz, progress=progress, tilt=first_tilt)
         write_bag(second_bag, traversals.second_day, traversals.sensor, second, seed=2,
-                  start_s=1_700_086_400.0, rate_hz=rate_hz, progress=progress)
+                  start_s=1_700_086_400.0, rate_hz=rate_hz, progress=progress, tilt=second_tilt)
         stamp.write_text(json.dumps(key))
     return first_bag, second_bag, second
 
@@ -121,9 +156,10 @@ def world_bags(name: str, folder: Path, *, stride: int = 1,
 def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndarray, seed: int,
               *, start_s: float = 1_700_000_000.0, rate_hz: float = 10.0,
               cloud_topic: str = "/points", odom_topic: str = "/odom",
-              progress: bool = True) -> None:
+              progress: bool = True, tilt: np.ndarray | None = None) -> None:
     """A ROS 2 bag (mcap) with PointCloud2 scans in frame 'lidar' and their Odometry
-    ('map' -> 'lidar'), one pair per trajectory row at rate_hz."""
+    ('map' -> 'lidar'), one pair per trajectory row at rate_hz; tilt (n, 2), the sensor's roll
+    and pitch in radians (None: level)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -139,7 +175,13 @@ def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndar
         odometry = writer.add_connection(odom_topic, odom_type, typestore=store)
         for index, (x, y, yaw) in enumerate(progress_bar(trajectory, desc=f"simulate {path.name}",
                                                          unit="scan", enabled=progress)):
-            pose = pose_matrix(np.array([x, y, sensor.mount_height_m]), quaternion_from_yaw(yaw))
+            position = np.array([x, y, sensor.mount_height_m])
+            if tilt is None:
+                q = quaternion_from_yaw(yaw)
+                pose = pose_matrix(position, q)
+            else:
+                pose = euler_pose(position, np.array([*tilt[index], yaw]))
+                q = matrix_to_quaternion(pose[:3, :3])
             points = cast(scene, sensor, pose, rng)
             stamp_ns = int(round((start_s + index / rate_hz) * 1e9))
             stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9,
@@ -149,7 +191,6 @@ def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndar
                 header=header, height=1, width=len(points), fields=fields, is_bigendian=False,
                 point_step=12, row_step=12 * len(points),
                 data=np.frombuffer(points.astype("<f4").tobytes(), np.uint8), is_dense=True)
-            q = quaternion_from_yaw(yaw)
             odom = types[odom_type](
                 header=types["std_msgs/msg/Header"](stamp=stamp, frame_id="map"),
                 child_frame_id="lidar",

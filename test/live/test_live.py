@@ -10,10 +10,10 @@ import pytest
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.pose import euler_pose, planar, planar_error, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.verification import VOUCHED
 from mf_lpr_ros.errors import InvalidPoseError, MapParameterMismatch
-from mf_lpr_ros.live.localiser import Localiser, relocalised_pose
+from mf_lpr_ros.live.localiser import UNLEVELLED, Localiser, relocalised_pose
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan, PoseBuffer, ScanPoseSynchroniser
 from mf_lpr_ros.sim.synthetic import route, scan_world
@@ -212,3 +212,36 @@ def test_relocalised_pose_removes_the_extrinsic():
     base_T_sensor = pose_at(1.0)                           # sensor 1 m ahead of the base
     world_T_base = relocalised_pose(match, pose_at(0.0), base_T_sensor)
     assert world_T_base[:2, 3] == pytest.approx([10.0, 4.0])   # facing +y: base is 1 m behind
+
+
+def _tilted(points: np.ndarray, pose: np.ndarray, roll_deg: float, pitch_deg: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The same scan from a sensor rolled and pitched in place: its points and its pose."""
+    tilt = euler_pose(np.zeros(3), np.radians([roll_deg, pitch_deg, 0.0]))[:3, :3]
+    tilted_pose = pose.copy()
+    tilted_pose[:3, :3] = pose[:3, :3] @ tilt
+    return (points @ tilt).astype(np.float32), tilted_pose
+
+
+def test_a_levelling_map_levels_scans_by_their_pose_and_describes_one_without_as_held(world):
+    """A handheld sensor's map (descriptor.level): a tilted scan with its pose is levelled and
+    found; without a pose it is still searched, described as the sensor held it, and said so
+    (a node without pose_source runs so instead of refusing to start)."""
+    base = preset("default")
+    config = dataclasses.replace(base, descriptor=dataclasses.replace(base.descriptor,
+                                                                      level=True))
+    rng = np.random.default_rng(1)
+    builder = MapBuilder(config, None)
+    for index, (x, y, yaw) in enumerate(route(120)):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        builder.offer(PairedScan(index, 10.0 + index, *_tilted(points, pose,
+                                                               *rng.uniform(-12.0, 12.0, 2))))
+    localiser = Localiser(builder.map, config)
+    x, y, yaw = route(120, lateral_offset_m=1.0)[37]
+    points, pose = _tilted(*scan_world(world, x, y, yaw, np.random.default_rng(3)), 14.0, -10.0)
+    levelled = localiser.localise(500.0, points, pose)
+    assert levelled.described_from == "single scan"
+    assert planar_error(levelled.match.pose, planar(pose))[0] < 1.0
+    held = localiser.localise(501.0, points, None)
+    assert held.described_from == "single scan" + UNLEVELLED
+    assert held.match.confidence < levelled.match.confidence - 0.05

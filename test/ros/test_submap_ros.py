@@ -15,6 +15,7 @@ from test_relocalise_service import ScanStream, _call
 from test_ros_nodes import errors
 
 from mf_lpr_ros.config import preset
+from mf_lpr_ros.live.localiser import UNLEVELLED
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
 from mf_lpr_ros.ros.localiser import LocaliserNode
@@ -92,3 +93,21 @@ def test_without_odometry_the_node_describes_single_scans(ros_graph, world, subm
     with posed_stream(ros_graph, world, route(300)[:50], odometry=False):
         assert ros_graph.wait_for(lambda: node.counters["scans_searched"] >= 3)
     assert node.last.described_from == "single scan"
+
+
+def test_without_odometry_a_livox_map_is_searched_with_single_unlevelled_scans(
+        ros_graph, world, tmp_path):
+    """The livox preset levels its submaps: a node given no pose_source used to refuse to
+    start; it now describes each scan alone and as the sensor held it, and says so."""
+    path = tmp_path / "livox.mfmap"
+    builder = MapBuilder(preset("livox"), path)
+    rng = np.random.default_rng(1)
+    for index, (x, y, yaw) in enumerate(route(300)):
+        points, pose = scan_world(world, x, y, yaw, rng, dropout=SPARSE_DROPOUT)
+        builder.offer(PairedScan(index, 10.0 + 0.1 * index, points, pose))
+    builder.save()
+    node = ros_graph.start(LocaliserNode, map_path=str(path))
+    assert node.localiser.map.params.level and node.localiser.submap is not None
+    with posed_stream(ros_graph, world, route(300)[:50], odometry=False):
+        assert ros_graph.wait_for(lambda: node.counters["scans_searched"] >= 3)
+    assert node.last.described_from == "single scan" + UNLEVELLED
