@@ -1,7 +1,12 @@
 """preset "auto": descriptor parameters derived from the scans themselves.
 
 A few scans are measured (SensorProfile) and the descriptor follows from rules, each stated
-where it is applied (auto_descriptor):
+where it is applied (auto_descriptor). A dense 360-degree sensor keeps the given (default)
+voxel and height band, and only its levelling is decided: on the tuning suite the voxel rule
+and the ground floor below lost to the defaults on every such sensor (the simulated town:
+recall@1 0.992 against 1.000, recall published 0.888 against 0.954; BALM 0.667 against 1.000
+published; docs/RESULTS.md, session 27), as on a dense 64-beam handheld set we do not have
+(0.704 against 1.000). A sparse or narrow sensor, which needs submaps, gets all of them:
 - voxel size: the paper's inverse-linear rule on occupied 1 m voxels per scan
   (core.descriptor.voxel_size_for_density), no smaller than lets the window hold the nearer
   WINDOW_HOLDS_PERCENT % of the returns and no larger than lets it reach past 95 % of them.
@@ -123,18 +128,20 @@ def measure_sensor(clouds: list[np.ndarray], orientations: list[np.ndarray] | No
 
 
 def auto_descriptor(profile: SensorProfile, base: DescriptorParams) -> DescriptorParams:
-    """base with what the profile determines replaced (see the module doc)."""
+    """base with what the profile determines replaced (see the module doc): levelling always,
+    and for a sensor that needs submaps the window, the voxel size and the height floor."""
     # The paper's rule, held between a window that holds most of what one scan sees and one
     # that reaches no farther than the sensor sees.
     holds = 2.0 * profile.range_held_m / base.size
     reach = 2.0 * profile.range_p95_m / base.size
-    voxel = round(min(max(voxel_size_for_density(profile.occupied_voxels), holds), reach), 2)
-    changes: dict = {"voxel_size": voxel}
-    if math.isfinite(profile.ground_below_sensor_m):
-        changes["z_min"] = round(GROUND_CLEARANCE_M - profile.ground_below_sensor_m, 2)
+    changes: dict = {}
     if math.isfinite(profile.tilt_spread_deg):
         changes["level"] = profile.tilt_spread_deg > TILT_SPREAD_DEG
     if needs_submaps(profile):
+        changes["voxel_size"] = round(min(max(voxel_size_for_density(profile.occupied_voxels),
+                                              holds), reach), 2)
+        if math.isfinite(profile.ground_below_sensor_m):
+            changes["z_min"] = round(GROUND_CLEARANCE_M - profile.ground_below_sensor_m, 2)
         changes["submap_m"] = AUTO_SUBMAP_M
     return dataclasses.replace(base, **changes)
 
@@ -179,20 +186,24 @@ def sample_indices(n_scans: int, count: int = SAMPLE_SCANS) -> np.ndarray:
 
 def describe_choice(profile: SensorProfile, params: DescriptorParams) -> str:
     """One line for the log: what was measured and chosen."""
-    ground = (f"ground {profile.ground_below_sensor_m:.2f} m below the sensor -> z from "
-              f"{params.z_min} m" if math.isfinite(profile.ground_below_sensor_m)
-              else "no ground found -> z " + ("unbounded below" if params.z_min is None
-                                               else f"from {params.z_min} m (as given)"))
+    band = "unbounded below" if params.z_min is None else f"from {params.z_min} m"
+    ground = (f"ground {profile.ground_below_sensor_m:.2f} m below the sensor"
+              if math.isfinite(profile.ground_below_sensor_m) else "no ground found")
     narrow = (f" (under {FULL_CIRCLE_BELOW_DEG:.0f}: revisits from other headings share "
               f"no ground)" if profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG else "")
-    return (f"preset auto on {profile.n_scans} scans: {profile.occupied_voxels:.0f} occupied 1 m "
-            f"voxels/scan, {WINDOW_HOLDS_PERCENT:.0f} % / 95 % of points within "
-            f"{profile.range_held_m:.0f} / {profile.range_p95_m:.0f} m -> voxel "
-            f"{params.voxel_size:.2f} m; {ground}; "
-            f"level {params.level}; field of view {profile.horizontal_fov_deg:.0f} deg{narrow}; "
-            f"{'sparse' if is_sparse(profile) else 'dense'} "
-            f"(under {SPARSE_OCCUPIED_VOXELS:.0f} voxels is sparse) -> "
-            + (f"submaps of {params.submap_m:g} m" if params.submap_m > 0 else "single scans"))
+    measured = (f"preset auto on {profile.n_scans} scans: {profile.occupied_voxels:.0f} occupied "
+                f"1 m voxels/scan, {WINDOW_HOLDS_PERCENT:.0f} % / 95 % of points within "
+                f"{profile.range_held_m:.0f} / {profile.range_p95_m:.0f} m, {ground}, field of "
+                f"view {profile.horizontal_fov_deg:.0f} deg{narrow}; "
+                f"{'sparse' if is_sparse(profile) else 'dense'} "
+                f"(under {SPARSE_OCCUPIED_VOXELS:.0f} voxels is sparse)")
+    if needs_submaps(profile):
+        chosen = (f"voxel {params.voxel_size:.2f} m, z {band}, level {params.level}, submaps of "
+                  f"{params.submap_m:g} m")
+    else:
+        chosen = (f"voxel {params.voxel_size:.2f} m and z {band} as given (a dense 360-degree "
+                  f"sensor), level {params.level}, single scans")
+    return f"{measured} -> {chosen}"
 
 
 def _ground_depth(points: np.ndarray, horizontal: np.ndarray) -> float:

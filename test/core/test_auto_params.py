@@ -1,5 +1,6 @@
 """preset auto: the descriptor derived from the scans (mf_lpr_ros/core/auto_params.py)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -24,21 +25,25 @@ from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.mapping import build_map
 from mf_lpr_ros.sim.synthetic import route, scan_world, write_kitti_sequence
 
+# 97 % of the returns dropped: ~870 occupied 1 m voxels a scan, a sparse sensor's (the
+# generated world's full scans hold ~8,600).
+SPARSE_DROPOUT = 0.97
 
-def _scans(world, n=6, lift_m=0.0, seed=0):
+
+def _scans(world, n=6, lift_m=0.0, seed=0, dropout=0.1):
     """Scans of the generated world (ground 1.7 m below the sensor), the sensor raised by
     lift_m."""
     rng = np.random.default_rng(seed)
     clouds = []
     for x, y, yaw in route(n):
-        points, _ = scan_world(world, x, y, yaw, rng)
+        points, _ = scan_world(world, x, y, yaw, rng, dropout=dropout)
         clouds.append(points[:, :3] - np.array([0.0, 0.0, lift_m], dtype=np.float32))
     return clouds
 
 
 @pytest.mark.parametrize("lift_m", [0.0, 1.0])
 def test_the_height_floor_follows_the_mount_and_nothing_is_cut_above(world, lift_m):
-    profile = measure_sensor(_scans(world, lift_m=lift_m))
+    profile = measure_sensor(_scans(world, lift_m=lift_m, dropout=SPARSE_DROPOUT))
     assert profile.ground_below_sensor_m == pytest.approx(1.7 + lift_m, abs=0.1)
     params = auto_descriptor(profile, DescriptorParams())
     # The floor sits at the same height above the ground whatever the mount.
@@ -47,8 +52,20 @@ def test_the_height_floor_follows_the_mount_and_nothing_is_cut_above(world, lift
     assert profile.horizontal_fov_deg == 360.0
 
 
+def test_a_dense_360_degree_sensor_keeps_the_given_voxel_and_height_band(world):
+    """On every dense sensor of the tuning suite the voxel rule and the ground floor lost to
+    the defaults; such a sensor gets only its levelling decided, a sparse one everything."""
+    dense = measure_sensor(_scans(world))
+    assert dense.occupied_voxels > 5000 and math.isfinite(dense.ground_below_sensor_m)
+    given = DescriptorParams(voxel_size=0.6, z_min=-1.0)
+    assert auto_descriptor(dense, given) == dataclasses.replace(given, level=False)
+    assert auto_descriptor(dense, DescriptorParams()) == DescriptorParams(level=False)
+    sparse = auto_descriptor(measure_sensor(_scans(world, dropout=SPARSE_DROPOUT)), given)
+    assert sparse.submap_m > 0 and sparse.voxel_size != 0.6 and sparse.z_min != -1.0
+
+
 def test_voxel_size_follows_the_papers_rule_held_between_what_the_sensor_sees(world):
-    clouds = _scans(world)
+    clouds = _scans(world, dropout=SPARSE_DROPOUT)
     profile = measure_sensor(clouds)
     params = auto_descriptor(profile, DescriptorParams())
     expected = min(max(voxel_size_for_density(profile.occupied_voxels),
@@ -63,13 +80,13 @@ def test_voxel_size_follows_the_papers_rule_held_between_what_the_sensor_sees(wo
     assert voxel_size_for_density(275) == pytest.approx(1.3, abs=0.05)
 
 
-def test_a_dense_sensor_seeing_far_keeps_a_window_holding_most_of_its_returns():
+def test_a_narrow_sensor_seeing_far_keeps_a_window_holding_most_of_its_returns():
     """The paper's rule gives any scan over ~1360 occupied voxels 0.3 m (a 36 m window): a
-    town seen to 60 m keeps a window holding the nearer 75 % of its returns; a forest's short
-    sight lines keep the rule's voxel."""
+    narrow sensor in a town seen to 60 m keeps a window holding the nearer 75 % of its
+    returns; a forest's short sight lines keep the rule's voxel."""
     def profile(held_m: float, occupied: float = 2700.0, p95_m: float = 60.0) -> SensorProfile:
         return SensorProfile(n_scans=12, occupied_voxels=occupied, ground_below_sensor_m=1.7,
-                             horizontal_fov_deg=360.0, heading_deg=0.0, tilt_spread_deg=0.5,
+                             horizontal_fov_deg=80.0, heading_deg=0.0, tilt_spread_deg=0.5,
                              range_p95_m=p95_m, range_held_m=held_m)
 
     town = auto_descriptor(profile(26.4), DescriptorParams())
@@ -119,10 +136,9 @@ def test_build_map_with_auto_records_its_choice(world, tmp_path):
     reference_map = build_map(open_source(tmp_path / "seq"), preset("auto"), progress=False)
     choice = reference_map.metadata["auto"]
     assert choice["preset"] == "auto"
-    ground = choice["sensor_profile"]["ground_below_sensor_m"]
-    assert ground == pytest.approx(1.7, abs=0.1)
-    assert reference_map.params.z_min == pytest.approx(0.5 - ground, abs=0.006)
-    assert reference_map.params != Config().descriptor
+    assert choice["sensor_profile"]["ground_below_sensor_m"] == pytest.approx(1.7, abs=0.1)
+    assert reference_map.params == auto_descriptor(_profile_of(choice), Config().descriptor)
+    assert "as given (a dense 360-degree sensor)" in choice["choice"]
     path = tmp_path / "auto.mfmap"
     reference_map.save(path)
     from mf_lpr_ros.core.map_store import ReferenceMap
@@ -152,8 +168,9 @@ def test_live_map_builder_holds_scans_until_auto_is_derived(world):
         builder.offer(PairedScan(index, float(index), points, pose))
     assert not builder.waiting_for_auto
     assert "preset auto" in builder.auto_choice
-    assert builder.map.params.z_min == pytest.approx(
-        0.5 - builder.map.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"], abs=0.006)
+    assert builder.map.params == auto_descriptor(_profile_of(builder.map.metadata["auto"]),
+                                                 Config().descriptor)
+    assert builder.map.params.level is False
     # Every scan moved >= 2 m: the held-back scans became references too, in order.
     assert list(builder.map.source_indices) == list(range(len(trajectory)))
 
@@ -166,9 +183,19 @@ def test_the_logged_choice_names_the_height_floor_and_the_sparseness_it_measured
 
     sparse = profile(math.nan, 700.0)
     line = describe_choice(sparse, auto_descriptor(sparse, DescriptorParams()))
-    assert "no ground found -> z unbounded below" in line
-    assert "700 occupied 1 m voxels/scan" in line and "sparse" in line and "submaps of 3 m" in line
+    assert "no ground found" in line and "z unbounded below" in line
+    assert "700 occupied 1 m voxels/scan" in line and "sparse" in line
+    assert line.endswith("submaps of 3 m")
+    floored = profile(1.7, 700.0)
+    line = describe_choice(floored, auto_descriptor(floored, DescriptorParams()))
+    assert "ground 1.70 m below the sensor" in line and "z from -1.2 m" in line
     dense = profile(1.7, 2000.0)
     line = describe_choice(dense, auto_descriptor(dense, DescriptorParams()))
-    assert "ground 1.70 m below the sensor -> z from -1.2 m" in line
-    assert "dense" in line and line.endswith("single scans")
+    assert "dense" in line and "voxel 0.50 m and z unbounded below as given" in line
+    assert line.endswith("single scans")
+
+
+def _profile_of(metadata: dict) -> SensorProfile:
+    """The SensorProfile a map's auto metadata records (None stands for NaN there)."""
+    return SensorProfile(**{key: math.nan if value is None else value
+                            for key, value in metadata["sensor_profile"].items()})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import resource
@@ -14,6 +15,7 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 
+from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
@@ -127,4 +129,6 @@ def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world,
     saved = ReferenceMap.load(map_path)
     assert len(saved) == n_scans
     assert saved.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
-    assert saved.params.z_min is not None and saved.params.z_min < 0
+    # A dense 360-degree sensor: the default voxel and band, its levelling decided (upright).
+    assert "as given (a dense 360-degree sensor)" in saved.metadata["auto"]["choice"]
+    assert saved.params == dataclasses.replace(preset("default").descriptor, level=False)
