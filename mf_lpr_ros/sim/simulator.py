@@ -176,6 +176,7 @@ def write_bag(path: Path, scene: Scene, sensor: SensorModel, trajectory: np.ndar
         for index, (x, y, yaw) in enumerate(progress_bar(trajectory, desc=f"simulate {path.name}",
                                                          unit="scan", enabled=progress)):
             position = np.array([x, y, sensor.mount_height_m])
+            # A level sensor's pose from its yaw alone: the level worlds' bags stay bit for bit.
             if tilt is None:
                 q = quaternion_from_yaw(yaw)
                 pose = pose_matrix(position, q)
