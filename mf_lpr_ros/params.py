@@ -148,16 +148,20 @@ class SearchParams:
         below), the match equals the exhaustive search's on every revisit query of KITTI 00
         BEV (and 00_rot), in ~1/4 of the time at 1500 references and ~1/100 at 20000
         (benchmarks/bench_search.py).
-    prefilter_retry_top_k: when the match found among the prefilter_top_k candidates is too
-        weak to accept (confidence under min_confidence), search again over the prefilter's
-        best prefilter_retry_top_k (0 or <= prefilter_top_k: never). Where the prefilter left
-        the true place out, the match found instead is weak (rotated KITTI 00 BEV against one
-        reference per 8 m: confidence 0.11-0.16 there, 0.30 and up for every right match), so
-        the retry recovers it: retrieval recall@1 there 0.956 -> 0.969, the exhaustive search's.
-        Off by default: a query from outside the map is weak too, so a loop-closure stream,
-        most of whose scans revisit nothing, pays ~2.5x its time (KITTI 00 closures 12.5 ->
-        33.9 ms a query at 256; docs/RESULTS.md, session 16). Worth it where every query is
-        inside the map and an answer may take longer (a relocalisation request).
+    prefilter_retry_top_k, prefilter_retry: when the match found among the prefilter_top_k
+        candidates is too weak to accept (confidence under min_confidence), search again over
+        the prefilter's best prefilter_retry_top_k (0 or <= prefilter_top_k: never). Where the
+        prefilter left the true place out, the match found instead is weak (rotated KITTI 00
+        BEV against one reference per 8 m: confidence 0.11-0.16 there, 0.30 and up for every
+        right match), so the retry recovers it: retrieval recall@1 there 0.956 -> 0.969, the
+        exhaustive search's. prefilter_retry says which searches retry: "requests" (default)
+        only a relocalisation request's (a ~/relocalise call waiting for its answer, `mf-lpr
+        localise`), where every query is inside the map and an answer may take longer;
+        "every_query" a loop-closure stream's too, where most scans revisit nothing and a
+        scan from outside the map is weak as well, so the stream pays ~2.5x its time (KITTI
+        00 closures 12.5 -> 33.9 ms a query at 256; docs/RESULTS.md, session 16). Without the
+        retry a robot standing still where the prefilter misses its place would never be
+        relocalised: each of its scans is the same query.
     prefilter_expand_m: the prefilter's 16 best references bring along every reference within
         this distance of them (map positions): the same place seen from a few metres away often
         scores just below them in the exact search, and the prefilter ranks such neighbours
@@ -276,7 +280,8 @@ class SearchParams:
     min_confidence: float = 0.4
     chunk_size: int = 256
     prefilter_top_k: int = 64
-    prefilter_retry_top_k: int = 0
+    prefilter_retry_top_k: int = 256
+    prefilter_retry: str = "requests"
     prefilter_expand_m: float = 6.0
     reference_spectra: str = "auto"
     backend: str = "auto"
@@ -317,6 +322,8 @@ class SearchParams:
                  self.prefilter_top_k)
         require_parameter(self.prefilter_retry_top_k >= 0, "prefilter_retry_top_k",
                           ">= 0 (0 = no retry)", self.prefilter_retry_top_k)
+        require_parameter(self.prefilter_retry in ("requests", "every_query"),
+                          "prefilter_retry", "'requests' or 'every_query'", self.prefilter_retry)
         require_parameter(self.prefilter_expand_m >= 0, "prefilter_expand_m", ">= 0",
                  self.prefilter_expand_m)
         require_parameter(self.reference_spectra in ("auto", "memory", "on_demand"),

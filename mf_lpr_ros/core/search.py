@@ -238,12 +238,15 @@ class MatchedFilterIndex:
         return self.map.source_references
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
-              sensor_offset_m: float = 0.0) -> MatchResult | None:
+              sensor_offset_m: float = 0.0, request: bool = False) -> MatchResult | None:
         """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
 
         sensor_offset_m: the query's Scan.sensor_offset_m; the map's is in its metadata. Both
         enter the pose: the alignment maps descriptor cells, and a sensor off the cell corner
         turns with the query.
+        request: the query answers a relocalisation request (the scan is expected inside the
+        map, and the answer may take longer): a weak match is searched again over the
+        prefilter's wider list (SearchParams.prefilter_retry).
         Returns None when there is no reference to search. One query at a time per index: the
         query operators' buffers are shared.
         """
@@ -252,15 +255,17 @@ class MatchedFilterIndex:
             self._query_seen = self._seen(occupancy)
             self._turned_query = {}
             with self._workers.own_cores():
-                return self._query(occupancy, n_active)
+                return self._query(occupancy, n_active, request)
 
-    def _query(self, occupancy: np.ndarray, n_active: int | None) -> MatchResult | None:
+    def _query(self, occupancy: np.ndarray, n_active: int | None, request: bool
+               ) -> MatchResult | None:
         n_refs = len(self) if n_active is None else min(n_active, len(self))
         if n_refs <= 0:
             return None
         top_k, retry_top_k = self.search.prefilter_top_k, self.search.prefilter_retry_top_k
         result = self._search(occupancy, n_refs, top_k)
-        if (self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
+        retries = request or self.search.prefilter_retry == "every_query"
+        if (retries and self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
                 and result.confidence < self.search.min_confidence):
             # Where the prefilter left the true place out, the match found instead is weak
             # (SearchParams.prefilter_retry_top_k): search its wider list.

@@ -135,10 +135,12 @@ class Localiser:
             self.index.sync()
             self.reference_count = len(self.map)
 
-    def localise(self, stamp: float, points: np.ndarray, pose: np.ndarray | None = None
-                 ) -> LiveMatch:
+    def localise(self, stamp: float, points: np.ndarray, pose: np.ndarray | None = None,
+                 *, request: bool = False) -> LiveMatch:
         """Search the map for one scan and verify the match (pose: world_T_sensor from odometry,
-        used for levelling and odometry consistency). Call it from one thread: it also adds the
+        used for levelling and odometry consistency). request: the scan answers a
+        relocalisation request, so a weak match is searched again over a wider candidate
+        list (SearchParams.prefilter_retry). Call it from one thread: it also adds the
         references queued by add_reference."""
         if self._builder is not None:
             self._integrate_references()
@@ -161,7 +163,7 @@ class Localiser:
         if self.mode == "loop_closure":
             n_active = int(np.searchsorted(self.map.stamps, stamp - self.exclude_recent_s,
                                            side="right"))
-        match = self.index.query(occupancy, n_active) if n_active else None
+        match = self.index.query(occupancy, n_active, request=request) if n_active else None
         odometry = planar(pose) if pose is not None and self.verifier.consistency_active \
             else None
         verdict = self.verifier.verify(

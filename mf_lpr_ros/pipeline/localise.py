@@ -49,6 +49,8 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
     """Match every (selected) scan of a sequence against a map and verify each match as the
     localiser does (verification.MatchVerifier; the sequence's poses, when every scan has one,
     serve as odometry, and make each scan's submap when the map's descriptor has a window).
+    Each scan is a relocalisation request: a weak match is searched again over the
+    prefilter's wider list (SearchParams.prefilter_retry).
     icp: refine every pose by ICP against the map's reference clouds."""
     if icp and not reference_map.has_clouds:
         raise ValueError("ICP refinement needs a map that keeps reference clouds "
@@ -65,7 +67,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
         started = time.perf_counter()
         occupancy = describe_scan(scan, reference_map.params, reference=False)
         descriptor_ms = (time.perf_counter() - started) * 1e3
-        match = index.query(occupancy, sensor_offset_m=scan.sensor_offset_m)
+        match = index.query(occupancy, sensor_offset_m=scan.sensor_offset_m, request=True)
         geometric = None
         if reference_map.has_clouds and scan.points is not None:
             points = prepared_points(scan, reference_map.params)

@@ -319,7 +319,10 @@ class LocaliserLogic(LidarNodeMixin):
                     self._busy = False
 
     def _localise(self, scan: _PendingScan) -> None:
-        result = self.localiser.localise(scan.seconds, scan.points, scan.pose)
+        with self._wake:
+            requested = any(r.asked <= scan.received for r in self._requests)
+        result = self.localiser.localise(scan.seconds, scan.points, scan.pose,
+                                         request=requested)
         self.last = result
         self.counters["scans_searched"] += 1
         self.searched_stamps.append(scan.seconds)

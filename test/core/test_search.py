@@ -155,17 +155,22 @@ def _ranking_prefilter(index, ranking):
     return asked
 
 
-@pytest.mark.parametrize("retry_top_k", [0, 4])
-def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(world, synthetic_map,
-                                                                      retry_top_k):
+@pytest.mark.parametrize("retry_top_k, retry, answers_request, retried", [
+    (0, "every_query", True, False),          # no wider list to search
+    (4, "requests", False, False),            # a stream's query: the default never retries it
+    (4, "requests", True, True),              # a relocalisation request
+    (4, "every_query", False, True)])
+def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
+        world, synthetic_map, retry_top_k, retry, answers_request, retried):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     query = describe_points(points, PARAMS)
     index = MatchedFilterIndex(synthetic_map, SearchParams(
-        prefilter_top_k=1, prefilter_retry_top_k=retry_top_k, prefilter_expand_m=0.0))
+        prefilter_top_k=1, prefilter_retry_top_k=retry_top_k, prefilter_retry=retry,
+        prefilter_expand_m=0.0))
     # The prefilter puts the true place (reference 0) fourth.
     asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
-    result = index.query(query)
-    if retry_top_k:
+    result = index.query(query, request=answers_request)
+    if retried:
         assert asked == [1, 4]
         assert result.reference_index == 0
         assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.15
@@ -180,7 +185,7 @@ def test_a_strong_match_is_not_searched_again(world, synthetic_map):
     index = MatchedFilterIndex(synthetic_map, SearchParams(
         prefilter_top_k=1, prefilter_retry_top_k=4, prefilter_expand_m=0.0))
     asked = _ranking_prefilter(index, [0, 3, 4, 1, 2])
-    result = index.query(describe_points(points, PARAMS))
+    result = index.query(describe_points(points, PARAMS), request=True)
     assert asked == [1]
     assert result.reference_index == 0
     assert result.confidence >= SearchParams().min_confidence

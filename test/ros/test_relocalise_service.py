@@ -126,3 +126,31 @@ def test_a_request_without_a_verified_match_times_out_with_a_reason(ros_graph, s
     reply = _call(ros_graph, client)
     assert not reply.success and "request_timeout_s" in reply.message
     assert node.counters["requests_timed_out"] == 1
+
+
+def test_a_request_searches_wider_where_the_candidate_stage_leaves_the_place_out(
+        ros_graph, synthetic_map):
+    """A robot the candidate stage fails (here the prefilter ranks the map's places in reverse
+    and one candidate is searched: a wrong place, and nothing to tell it from) gets nothing
+    published from its stream of scans, which are not searched again; a ~/relocalise call
+    searches its scans again over the wider list (search.prefilter_retry: requests, here
+    every reference) and answers with the right pose."""
+    path, queries = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
+                           **{"search.prefilter_top_k": 1, "search.prefilter_expand_m": 0.0})
+    prefilter = node.localiser.index.prefilter
+    ranking = prefilter.top
+    prefilter.top = lambda image, k, stop=None: ranking(image, len(prefilter), stop)[::-1][:k]
+    client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
+    publisher = ros_graph.publisher(PointCloud2, "points")
+    ros_graph.wait_for_subscribers(publisher)
+    with ScanStream(publisher, queries) as stream:
+        assert ros_graph.wait_for(lambda: node.counters["scans_searched"] >= 10)
+        assert node.counters["matches_accepted"] == 0
+        assert node.last.match.searched is not None and len(node.last.match.searched) == 1
+        reply = _call(ros_graph, client)
+        assert reply.success, reply.message
+        answer = json.loads(reply.message)
+        translation, yaw = errors(np.array([answer["x"], answer["y"], answer["yaw"]]),
+                                  stream.truth[round(answer["stamp"], 3)])
+        assert translation < 0.5 and yaw < 2.0
