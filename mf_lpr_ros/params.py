@@ -265,10 +265,12 @@ class SearchParams:
         candidate only at the headings within this many degrees of its prefilter angle or
         the opposite one (the polar spectra's best circular shift, known modulo half a turn;
         within 3.4 degrees of the match's yaw on every right match of sampled KITTI 00 and
-        00_rot queries): ~10 of the 72 headings instead of all, the global stage ~2x faster
-        at 1,500 references. At 10 (default) every revisit of the tuning sets keeps its match
-        but 3 of 805 (moved to another right reference), and every figure of the tuning
-        table is unchanged (docs/RESULTS.md, session 12). 0 scores every heading.
+        00_rot queries). 6 (default) is that error plus half of rotation_step_deg: the
+        heading nearest the true yaw is always scored, ~6 of the 72 headings. From 10 (session
+        12) to 6 no revisit of the tuning suite changed its match (same reference, pose
+        within 5 cm), and KITTI 00 queries take 32.1 -> 26.7 ms (docs/RESULTS.md, session
+        28); 4 was faster still (20.5 ms) but moved 11 poses by up to 0.9 m. 0 scores every
+        heading.
     """
 
     rotation_step_deg: float = 5.0
@@ -300,7 +302,7 @@ class SearchParams:
     rerank_margin: float = 0.9
     rerank_agreement_m: float = 2.0
     query_footprint: str = "auto"
-    global_yaw_window_deg: float = 10.0
+    global_yaw_window_deg: float = 6.0
 
     def __post_init__(self) -> None:
         require_parameter(0 < self.rotation_step_deg <= 180
