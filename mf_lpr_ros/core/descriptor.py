@@ -229,9 +229,13 @@ def pool(images: np.ndarray, factor: int) -> np.ndarray:
     """Average pooling by factor over the last two axes."""
     if factor == 1:
         return images.astype(np.float32, copy=False)
-    *lead, rows, cols = images.shape
-    blocks = images.reshape(*lead, rows // factor, factor, cols // factor, factor)
-    return blocks.mean(axis=(-3, -1), dtype=np.float32)
+    # A sum of factor^2 strided views: a mean over two axes of the blocks reduces ~10x slower.
+    total = np.zeros(images.shape[:-2] + (images.shape[-2] // factor, images.shape[-1] // factor),
+                     dtype=np.float32)
+    for i in range(factor):
+        for j in range(factor):
+            total += images[..., i::factor, j::factor]
+    return total * np.float32(1.0 / factor ** 2)
 
 
 def pooled_weights(occupancy: np.ndarray, unoccupied_weight: float, factor: int,

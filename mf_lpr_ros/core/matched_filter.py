@@ -47,7 +47,28 @@ class AllowedScores:
         self.queries, self.positions, self.scores = queries, positions, scores
 
 
-class SpectralBank(NumpyArrays):
+class _ReferenceImages(NumpyArrays):
+    """What every bank keeps: the references' spectra (_bank), their images' norms (_norms)
+    and how many are filled (_count)."""
+
+    _bank: np.ndarray
+    _norms: np.ndarray
+    _count: int
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def norms(self) -> np.ndarray:
+        """L2 norm of every reference image."""
+        return self._norms[: self._count]
+
+    @property
+    def nbytes(self) -> int:
+        return self._nbytes(self._bank) + self._norms.nbytes
+
+
+class SpectralBank(_ReferenceImages):
     """Reference images prepared once for windowed correlation against many queries.
 
     Storage is (capacity, K, H) complex64: for each reference and x-frequency k the spectra of
@@ -71,18 +92,6 @@ class SpectralBank(NumpyArrays):
         self.workers = workers or Workers()
         # One buffer per worker thread of _allowed_scores.
         self._one_query_operators = [np.empty(0, dtype=np.complex64)] * self.workers.threads
-
-    def __len__(self) -> int:
-        return self._count
-
-    @property
-    def norms(self) -> np.ndarray:
-        """L2 norm of every reference image."""
-        return self._norms[: self._count]
-
-    @property
-    def nbytes(self) -> int:
-        return self._nbytes(self._bank) + self._norms.nbytes
 
     def append(self, images: np.ndarray) -> None:
         """Add references, (n, H, W) float32."""
@@ -311,14 +320,21 @@ class SpectralBank(NumpyArrays):
         return located
 
 
-def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarray:
-    """(2S+1, 2K) real matrix: interleaved [Re, Im] half-spectrum -> real signal at |dj| <= S."""
-    shifts = np.arange(-max_shift, max_shift + 1)[:, None]
-    freqs = np.arange(n_freqs)[None, :]
+def _half_spectrum_weights(length: int, n_freqs: int) -> np.ndarray:
+    """How often each frequency of a real signal's half spectrum counts in its inverse: twice,
+    but once for the mean and for the Nyquist frequency of an even length."""
     weight = np.full(n_freqs, 2.0)
     weight[0] = 1.0
     if length % 2 == 0:
         weight[-1] = 1.0
+    return weight
+
+
+def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarray:
+    """(2S+1, 2K) real matrix: interleaved [Re, Im] half-spectrum -> real signal at |dj| <= S."""
+    shifts = np.arange(-max_shift, max_shift + 1)[:, None]
+    freqs = np.arange(n_freqs)[None, :]
+    weight = _half_spectrum_weights(length, n_freqs)
     phase = 2 * np.pi * freqs * shifts / length
     inverse = np.empty((len(shifts), n_freqs, 2))
     inverse[:, :, 0] = weight * np.cos(phase) / length
@@ -378,3 +394,70 @@ def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -
     """
     correlation = LocalCorrelation(reference.shape, max_shift)
     return correlation.against(reference)(correlation.spectra(queries))
+
+
+class PairBank(_ReferenceImages):
+    """Reference images' 2-D spectra, scored against queries pair by pair: each (reference,
+    query) pair's windowed correlation peak, for any list of pairs at once.
+
+    A pair is an elementwise product of the two spectra; the inverse DFT restricted to the
+    shift window is then two matrix products over every pair together (along y, then along x
+    as a real inverse of the half spectrum). The cost follows the pairs, not the queries: for
+    the candidate stage's many references each at a few headings of its own, where the
+    SpectralBank's per-query products would be dominated by their count.
+    """
+
+    def __init__(self, size: int, max_shift: int, capacity: int = 1) -> None:
+        if max_shift < 0:
+            raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+        self.size, self.max_shift = size, max_shift
+        self.length = size + max_shift
+        self.n_freqs = self.length // 2 + 1
+        shifts = np.arange(-max_shift, max_shift + 1)
+        phase = 2j * np.pi / self.length
+        self._along_y = (np.exp(phase * np.outer(shifts, np.arange(self.length)))
+                         / self.length).astype(np.complex64)
+        weight = _half_spectrum_weights(self.length, self.n_freqs)
+        self._along_x = (weight[:, None] * np.exp(phase * np.outer(np.arange(self.n_freqs), shifts))
+                         / self.length).astype(np.complex64)
+        self._bank = np.zeros((self.length, max(capacity, 1), self.n_freqs), dtype=np.complex64)
+        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
+        self._count = 0
+
+    def _spectra(self, images: np.ndarray) -> np.ndarray:
+        """(L, n, F) spectra of images (n, size, size), zero-padded to the linear window."""
+        images = np.asarray(images, dtype=np.float32)
+        if images.ndim != 3 or images.shape[1:] != (self.size, self.size):
+            raise ValueError(f"expected (n, {self.size}, {self.size}) images, got {images.shape}")
+        return sp_fft.rfft2(images, s=(self.length, self.length)).transpose(1, 0, 2)
+
+    def append(self, images: np.ndarray) -> None:
+        """Add references, (n, size, size)."""
+        spectra = self._spectra(images)
+        start, stop = self._count, self._count + spectra.shape[1]
+        if stop > self._bank.shape[1]:
+            capacity = max(stop, 2 * self._bank.shape[1])
+            bank = np.zeros((self.length, capacity, self.n_freqs), dtype=np.complex64)
+            bank[:, :start] = self._bank[:, :start]
+            norms = np.zeros(capacity, dtype=np.float32)
+            norms[:start] = self._norms[:start]
+            self._bank, self._norms = bank, norms
+        self._bank[:, start:stop] = spectra
+        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
+        self._count = stop
+
+    def refill(self, images: np.ndarray) -> None:
+        """Replace every reference by images, keeping the storage."""
+        self._count = 0
+        self.append(images)
+
+    def best(self, queries: np.ndarray, references: np.ndarray, query_of_pair: np.ndarray
+             ) -> np.ndarray:
+        """(P,) float32: the best score within the shift window of each pair, reference
+        references[p] against query queries[query_of_pair[p]] (queries (A, size, size))."""
+        product = np.conj(self._spectra(queries))[:, query_of_pair]
+        product *= self._bank[:, references]
+        n_pairs = len(references)
+        along_y = self._along_y @ product.reshape(self.length, n_pairs * self.n_freqs)
+        scores = (along_y.reshape(-1, self.n_freqs) @ self._along_x).real
+        return scores.reshape(-1, n_pairs, scores.shape[1]).max(axis=2).max(axis=0)

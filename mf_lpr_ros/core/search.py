@@ -17,6 +17,7 @@ from mf_lpr_ros.core.descriptor import (
     TurnedPooling,
     footprint,
     observed_cells,
+    pool,
     pooled_weights,
     prepare_rotations,
     rotate_occupancy,
@@ -24,7 +25,7 @@ from mf_lpr_ros.core.descriptor import (
     weighted,
 )
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
-from mf_lpr_ros.core.matched_filter import PreparedQueries
+from mf_lpr_ros.core.matched_filter import PairBank, PreparedQueries
 from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import (
     alignment_from_poses,
@@ -169,6 +170,12 @@ class MatchedFilterIndex:
                                threads=search.threads)
         self.backend = backend.name
         self.bank, self.prefilter = backend.bank, backend.prefilter
+        # The candidate stage's second opinion on the prefilter's list (_rescored): small
+        # enough for the host on any backend.
+        self.coarse_bank = PairBank(
+            size // 2, min(math.ceil(search.max_shift_m / (2 * low_cell)), size // 2 - 1),
+            search.prefilter_rescore_k if self.spectra_on_demand else len(reference_map),
+        ) if 0 < search.prefilter_top_k < search.prefilter_rescore_k else None
         self._local_correlation = backend.local
         # Every heading at once from the occupied cells, where the footprint does not turn.
         self._turned_pooling = (
@@ -180,6 +187,9 @@ class MatchedFilterIndex:
         # The query turned to each local-stage angle used so far, by angle: finalists of one
         # query mostly share their headings. Emptied at every query.
         self._turned_query: dict[float, _TurnedQuery] = {}
+        # The query's low-resolution weights by global heading, made once per query: the
+        # candidate stage and the global stage mostly need the same headings.
+        self._pooled_turns: dict[int, np.ndarray] = {}
         self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
         self._indexed = 0
@@ -208,6 +218,8 @@ class MatchedFilterIndex:
             low = self._low_references(slice(first, last))
             if not self.spectra_on_demand:
                 self.bank.append(low)
+                if self.coarse_bank is not None:
+                    self.coarse_bank.append(pool(low, 2))
             if self.prefilter is not None:
                 self.prefilter.append(low)
         if start == 0 and not restored and self._caches_prefilter():
@@ -253,7 +265,7 @@ class MatchedFilterIndex:
         with self._query_lock:
             self._query_offset = np.full(2, float(sensor_offset_m))
             self._query_seen = self._seen(occupancy)
-            self._turned_query = {}
+            self._turned_query, self._pooled_turns = {}, {}
             with self._workers.own_cores():
                 return self._query(occupancy, n_active, request)
 
@@ -284,7 +296,7 @@ class MatchedFilterIndex:
         if prefiltered:
             # global_angles[0] is 0: the unrotated query.
             upright = self._turned_and_pooled(occupancy, headings[:1])[0]
-            searched = self._candidates(upright, n_refs, top_k)
+            searched = self._candidates(occupancy, upright, n_refs, top_k)
             allowed = self._allowed_headings(upright, searched)
             scored = None if allowed is None else allowed.any(axis=0)
             if scored is not None and not scored.all():
@@ -372,11 +384,12 @@ class MatchedFilterIndex:
         result.searched = searched if prefiltered else None
         return result
 
-    def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray
-                          ) -> np.ndarray | None:
-        """(len(searched), global angles) bool: the headings within global_yaw_window_deg of
-        each candidate's prefilter angle, or of the opposite one; None when the window is off."""
-        window = self.search.global_yaw_window_deg
+    def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray,
+                          window: float | None = None) -> np.ndarray | None:
+        """(len(searched), global angles) bool: the headings within window (default
+        global_yaw_window_deg) of each candidate's prefilter angle, or of the opposite one;
+        None when the window is off."""
+        window = self.search.global_yaw_window_deg if window is None else window
         if window <= 0:
             return None
         angles = self.prefilter.angles(low_query, searched)
@@ -523,11 +536,45 @@ class MatchedFilterIndex:
             return np.arange(n_refs)
         with self._query_lock:
             self._query_seen = self._seen(occupancy)
+            self._pooled_turns = {}
             upright = self._turned_and_pooled(occupancy, np.arange(1))[0]
-        return self._candidates(upright, n_refs, top_k)
+            return self._candidates(occupancy, upright, n_refs, top_k)
 
-    def _candidates(self, low_query: np.ndarray, n_refs: int, top_k: int) -> np.ndarray:
-        return self._expanded(self.prefilter.top(low_query, top_k, n_refs), n_refs)
+    def _candidates(self, occupancy: np.ndarray, low_query: np.ndarray, n_refs: int,
+                    top_k: int) -> np.ndarray:
+        wide_k = self.search.prefilter_rescore_k
+        if self.coarse_bank is None or top_k >= wide_k:
+            return self._expanded(self.prefilter.top(low_query, top_k, n_refs), n_refs)
+        wide = self.prefilter.top(low_query, wide_k, n_refs)
+        return self._expanded(self._rescored(occupancy, low_query, wide)[:top_k], n_refs)
+
+    def _rescored(self, occupancy: np.ndarray, low_query: np.ndarray, wide: np.ndarray
+                  ) -> np.ndarray:
+        """wide (the prefilter's best references) reordered by the coarse matched filter:
+        query and references pooled 2x2 once more, correlated within max_shift_m at the
+        global heading nearest each one's prefilter angle and at the opposite one. The polar
+        spectra ignore where things lie in the window; the correlation does not."""
+        # Two headings a reference: on the 8 m tuning pairs the true place ranks as well as
+        # with the global stage's yaw window, at a third of the pairs.
+        allowed = self._allowed_headings(low_query, wide, window=1e-9)
+        positions, pair_headings = np.nonzero(allowed)
+        headings, query_of_pair = np.unique(pair_headings, return_inverse=True)
+        if self.spectra_on_demand:
+            by_position = np.argsort(wide)
+            coarse = np.empty((len(wide),) + (self.params.low_size // 2,) * 2, dtype=np.float32)
+            coarse[by_position] = pool(self._low_references(wide[by_position]), 2)
+            self.coarse_bank.refill(coarse)
+            columns = np.arange(len(wide))
+        else:
+            columns = wide
+        pair_scores = self.coarse_bank.best(pool(self._turned_and_pooled(occupancy, headings), 2),
+                                            columns[positions], query_of_pair)
+        # np.nonzero lists the pairs by position: each reference's best over its headings.
+        scores = np.maximum.reduceat(pair_scores, np.searchsorted(positions,
+                                                                  np.arange(len(wide))))
+        if self.search.score_normalisation == "cosine":
+            scores = scores / np.maximum(self.coarse_bank.norms[columns], 1e-6)
+        return wide[np.argsort(-scores, kind="stable")]
 
     def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
         """searched, then the references near its leaders that it lacks (prefilter_expand_m),
@@ -626,7 +673,21 @@ class MatchedFilterIndex:
         return rotate_occupancy(self.covered, angles, only) & self.covered_window
 
     def _turned_and_pooled(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
-        """The query's low-resolution weights turned to global_angles[headings]: (A, d, d)."""
+        """The query's low-resolution weights turned to global_angles[headings]: (A, d, d),
+        each heading made once per query (self._pooled_turns)."""
+        missing = np.array([h for h in headings if int(h) not in self._pooled_turns],
+                           dtype=np.int64)
+        if (2 * len(missing) > len(self.global_angles) and self._turned_pooling is not None
+                and self._query_seen is None):
+            # Every heading from the occupied cells at once costs about what half of them
+            # turned one by one does (TurnedPooling).
+            missing = np.arange(len(self.global_angles))
+        if len(missing):
+            self._pooled_turns.update(zip(missing.tolist(),
+                                          self._turn_and_pool(occupancy, missing)))
+        return np.stack([self._pooled_turns[int(h)] for h in headings])
+
+    def _turn_and_pool(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
         # Every heading: the whole table as it is (a copy of its rows costs ~0.5 ms).
         only = None if len(headings) == len(self.global_angles) else headings
         if only is None and self._turned_pooling is not None and self._query_seen is None:

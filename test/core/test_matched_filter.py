@@ -1,7 +1,12 @@
 import numpy as np
 import pytest
 
-from mf_lpr_ros.core.matched_filter import LocalCorrelation, SpectralBank, correlate_fft2
+from mf_lpr_ros.core.matched_filter import (
+    LocalCorrelation,
+    PairBank,
+    SpectralBank,
+    correlate_fft2,
+)
 from mf_lpr_ros.core.workers import Workers
 
 
@@ -37,6 +42,27 @@ def test_bank_equals_direct_correlation(rng, size, max_shift):
             np.testing.assert_allclose(correlate_fft2(queries[a:a + 1], references[r],
                                                       max_shift)[0],
                                        direct, atol=1e-3)
+
+
+@pytest.mark.parametrize("size,max_shift", [(12, 4), (15, 3), (10, 9)])
+def test_pair_bank_scores_each_pair_at_its_best_direct_correlation(rng, size, max_shift):
+    references = rng.normal(size=(6, size, size)).astype(np.float32)
+    queries = rng.normal(size=(4, size, size)).astype(np.float32)
+    bank = PairBank(size, max_shift, capacity=2)
+    bank.append(references[:2])
+    bank.append(references[2:])  # growing past capacity keeps earlier references
+    pairs_reference = np.array([5, 0, 3, 3, 1, 5])
+    pairs_query = np.array([0, 2, 1, 3, 3, 0])
+    scores = bank.best(queries, pairs_reference, pairs_query)
+    direct = [correlate_direct(queries[a], references[r], max_shift).max()
+              for r, a in zip(pairs_reference, pairs_query)]
+    np.testing.assert_allclose(scores, direct, atol=1e-3)
+    np.testing.assert_allclose(bank.norms, np.linalg.norm(references, axis=(1, 2)), rtol=1e-5)
+    bank.refill(references[4:])
+    assert len(bank) == 2
+    np.testing.assert_allclose(bank.best(queries, np.array([1]), np.array([2])),
+                               [correlate_direct(queries[2], references[5], max_shift).max()],
+                               atol=1e-3)
 
 
 MAX_SHIFT = 5

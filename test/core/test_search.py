@@ -181,8 +181,8 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     query = describe_points(points, PARAMS)
     index = MatchedFilterIndex(synthetic_map, SearchParams(
-        prefilter_top_k=1, prefilter_retry_top_k=retry_top_k, prefilter_retry=retry,
-        prefilter_expand_m=0.0))
+        prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=retry_top_k,
+        prefilter_retry=retry, prefilter_expand_m=0.0))
     # The prefilter puts the true place (reference 0) fourth.
     asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
     result = index.query(query, request=answers_request)
@@ -199,12 +199,35 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
 def test_a_strong_match_is_not_searched_again(world, synthetic_map):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     index = MatchedFilterIndex(synthetic_map, SearchParams(
-        prefilter_top_k=1, prefilter_retry_top_k=4, prefilter_expand_m=0.0))
+        prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=4,
+        prefilter_expand_m=0.0))
     asked = _ranking_prefilter(index, [0, 3, 4, 1, 2])
     result = index.query(describe_points(points, PARAMS), request=True)
     assert asked == [1]
     assert result.reference_index == 0
     assert result.confidence >= SearchParams().min_confidence
+
+
+@pytest.mark.parametrize("rescore_k", [0, 5])
+def test_the_coarse_filter_ranks_again_what_the_prefilter_ranked_low(
+        world, synthetic_map, rescore_k):
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    query = describe_points(points, PARAMS)
+    index = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=1, prefilter_rescore_k=rescore_k, prefilter_retry_top_k=0,
+        prefilter_expand_m=0.0))
+    # The prefilter puts the true place (reference 0) fourth; one candidate goes on.
+    asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
+    result = index.query(query)
+    if rescore_k:
+        assert asked == [5]
+        assert list(result.searched) == [0]
+        assert result.reference_index == 0
+        assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.15
+    else:
+        assert asked == [1]
+        assert list(result.searched) == [3]
+    assert list(index.candidates(query, 1)) == list(result.searched)
 
 
 def test_n_active_restricts_the_search(world, synthetic_map):
