@@ -51,11 +51,15 @@ def _same_result(a, b):
     assert a.distinctiveness == pytest.approx(b.distinctiveness, rel=1e-5, abs=1e-6)
 
 
+@pytest.mark.parametrize("rescore_k", [0, 16])
 @pytest.mark.parametrize("n_active", [None, 20, 6])
-def test_on_demand_spectra_give_the_matches_of_spectra_in_memory(loop_map, queries, n_active):
-    # n_active 6 is under prefilter_top_k: the exhaustive path, on demand too.
-    memory = MatchedFilterIndex(loop_map, dataclasses.replace(SEARCH, reference_spectra="memory"))
-    on_demand = MatchedFilterIndex(loop_map, dataclasses.replace(SEARCH,
+def test_on_demand_spectra_give_the_matches_of_spectra_in_memory(loop_map, queries, n_active,
+                                                                 rescore_k):
+    # n_active 6 is under prefilter_top_k: the exhaustive path, on demand too. rescore_k 16:
+    # the coarse re-ranking's references are pooled on demand too.
+    search = dataclasses.replace(SEARCH, prefilter_rescore_k=rescore_k)
+    memory = MatchedFilterIndex(loop_map, dataclasses.replace(search, reference_spectra="memory"))
+    on_demand = MatchedFilterIndex(loop_map, dataclasses.replace(search,
                                                                  reference_spectra="on_demand"))
     assert not memory.spectra_on_demand and on_demand.spectra_on_demand
     for query in queries:
@@ -63,6 +67,8 @@ def test_on_demand_spectra_give_the_matches_of_spectra_in_memory(loop_map, queri
     # Only a query's candidates are held: the spectra bank is sized for them, not the map.
     assert len(on_demand.bank) <= len(loop_map)
     assert on_demand.nbytes < memory.nbytes
+    if rescore_k:
+        assert len(on_demand.coarse_bank) <= rescore_k < len(memory.coarse_bank)
 
 
 def test_auto_keeps_spectra_in_memory_up_to_its_limit(loop_map, monkeypatch):
