@@ -48,12 +48,32 @@ class AllowedScores:
 
 
 class _ReferenceImages(NumpyArrays):
-    """What every bank keeps: the references' spectra (_bank), their images' norms (_norms)
-    and how many are filled (_count)."""
+    """What every bank keeps: the references' spectra (_bank, one reference per index of its
+    _REFERENCE_AXIS), their images' norms (_norms) and how many are filled (_count). A bank
+    makes its storage (_new_bank) and adds references (append)."""
 
+    _REFERENCE_AXIS = 0
     _bank: np.ndarray
     _norms: np.ndarray
     _count: int
+
+    def refill(self, images: np.ndarray) -> None:
+        """Replace every reference by images, keeping the storage."""
+        self._count = 0
+        self.append(images)
+
+    def _reserve(self, needed: int) -> None:
+        """Room for needed references, growing by doubling (the filled ones kept)."""
+        capacity = self._bank.shape[self._REFERENCE_AXIS]
+        if needed <= capacity:
+            return
+        new_capacity = max(needed, 2 * capacity)
+        filled = (slice(None),) * self._REFERENCE_AXIS + (slice(0, self._count),)
+        bank = self._new_bank(new_capacity)
+        bank[filled] = self._bank[filled]
+        norms = np.zeros(new_capacity, dtype=np.float32)
+        norms[: self._count] = self._norms[: self._count]
+        self._bank, self._norms = bank, norms
 
     def __len__(self) -> int:
         return self._count
@@ -106,24 +126,8 @@ class SpectralBank(_ReferenceImages):
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
 
-    def refill(self, images: np.ndarray) -> None:
-        """Replace every reference by images (n, H, W), keeping the storage."""
-        self._count = 0
-        self.append(images)
-
     def _new_bank(self, capacity: int) -> np.ndarray:
         return np.zeros((capacity, self.n_freqs, self.height), dtype=np.complex64)
-
-    def _reserve(self, needed: int) -> None:
-        capacity = self._bank.shape[0]
-        if needed <= capacity:
-            return
-        new_capacity = max(needed, 2 * capacity)
-        bank = self._new_bank(new_capacity)
-        bank[: self._count] = self._bank[: self._count]
-        norms = np.zeros(new_capacity, dtype=np.float32)
-        norms[: self._count] = self._norms[: self._count]
-        self._bank, self._norms = bank, norms
 
     @staticmethod
     def _columns(blocks: np.ndarray) -> np.ndarray:
@@ -404,8 +408,11 @@ class PairBank(_ReferenceImages):
     shift window is then two matrix products over every pair together (along y, then along x
     as a real inverse of the half spectrum). The cost follows the pairs, not the queries: for
     the candidate stage's many references each at a few headings of its own, where the
-    SpectralBank's per-query products would be dominated by their count.
+    SpectralBank's per-query products would be dominated by their count. Storage is (L,
+    capacity, F): the pairs' spectra are gathered straight into the products' layout.
     """
+
+    _REFERENCE_AXIS = 1
 
     def __init__(self, size: int, max_shift: int, capacity: int = 1) -> None:
         if max_shift < 0:
@@ -420,7 +427,7 @@ class PairBank(_ReferenceImages):
         weight = _half_spectrum_weights(self.length, self.n_freqs)
         self._along_x = (weight[:, None] * np.exp(phase * np.outer(np.arange(self.n_freqs), shifts))
                          / self.length).astype(np.complex64)
-        self._bank = np.zeros((self.length, max(capacity, 1), self.n_freqs), dtype=np.complex64)
+        self._bank = self._new_bank(max(capacity, 1))
         self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
         self._count = 0
 
@@ -431,25 +438,17 @@ class PairBank(_ReferenceImages):
             raise ValueError(f"expected (n, {self.size}, {self.size}) images, got {images.shape}")
         return sp_fft.rfft2(images, s=(self.length, self.length)).transpose(1, 0, 2)
 
+    def _new_bank(self, capacity: int) -> np.ndarray:
+        return np.zeros((self.length, capacity, self.n_freqs), dtype=np.complex64)
+
     def append(self, images: np.ndarray) -> None:
         """Add references, (n, size, size)."""
         spectra = self._spectra(images)
         start, stop = self._count, self._count + spectra.shape[1]
-        if stop > self._bank.shape[1]:
-            capacity = max(stop, 2 * self._bank.shape[1])
-            bank = np.zeros((self.length, capacity, self.n_freqs), dtype=np.complex64)
-            bank[:, :start] = self._bank[:, :start]
-            norms = np.zeros(capacity, dtype=np.float32)
-            norms[:start] = self._norms[:start]
-            self._bank, self._norms = bank, norms
+        self._reserve(stop)
         self._bank[:, start:stop] = spectra
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
-
-    def refill(self, images: np.ndarray) -> None:
-        """Replace every reference by images, keeping the storage."""
-        self._count = 0
-        self.append(images)
 
     def best(self, queries: np.ndarray, references: np.ndarray, query_of_pair: np.ndarray
              ) -> np.ndarray:

@@ -233,6 +233,13 @@ class MatchedFilterIndex:
         return pooled_weights(self.map.occupancy(references), self.params.unoccupied_weight,
                               self.params.pool, self.covered)
 
+    def _low_in_order(self, references: np.ndarray) -> np.ndarray:
+        """_low_references of references, in their order, the map read in file order."""
+        by_position = np.argsort(references)
+        low = np.empty((len(references),) + (self.params.low_size,) * 2, dtype=np.float32)
+        low[by_position] = self._low_references(references[by_position])
+        return low
+
     def _caches_prefilter(self) -> bool:
         return (self.spectra_on_demand and self.prefilter is not None
                 and self.map.source_path is not None and self.map.source_references > 0)
@@ -310,11 +317,8 @@ class MatchedFilterIndex:
         prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
         volume = None
         if self.spectra_on_demand:
-            # Read the map in file order, store in searched's order: column k is searched[k].
-            by_position = np.argsort(searched)
-            low = np.empty((len(searched),) + (self.params.low_size,) * 2, dtype=np.float32)
-            low[by_position] = self._low_references(searched[by_position])
-            self.bank.refill(low)
+            # Column k is searched[k].
+            self.bank.refill(self._low_in_order(searched))
             columns = np.arange(len(searched))
         else:
             columns = searched
@@ -554,16 +558,15 @@ class MatchedFilterIndex:
         query and references pooled 2x2 once more, correlated within max_shift_m at the
         global heading nearest each one's prefilter angle and at the opposite one. The polar
         spectra ignore where things lie in the window; the correlation does not."""
-        # Two headings a reference: on the 8 m tuning pairs the true place ranks as well as
-        # with the global stage's yaw window, at a third of the pairs.
-        allowed = self._allowed_headings(low_query, wide, window=1e-9)
+        # The nearest heading and its opposite (a window of half a step): on the 8 m tuning
+        # pairs the true place ranks as well as with the global stage's yaw window, at a third
+        # of the pairs.
+        allowed = self._allowed_headings(low_query, wide,
+                                         window=self.search.rotation_step_deg / 2)
         positions, pair_headings = np.nonzero(allowed)
         headings, query_of_pair = np.unique(pair_headings, return_inverse=True)
         if self.spectra_on_demand:
-            by_position = np.argsort(wide)
-            coarse = np.empty((len(wide),) + (self.params.low_size // 2,) * 2, dtype=np.float32)
-            coarse[by_position] = pool(self._low_references(wide[by_position]), 2)
-            self.coarse_bank.refill(coarse)
+            self.coarse_bank.refill(pool(self._low_in_order(wide), 2))
             columns = np.arange(len(wide))
         else:
             columns = wide
