@@ -13,7 +13,8 @@ def test_paper_defaults():
     assert (descriptor.patch_size, descriptor.patch_cap) == (10, 20)
     assert search.rotation_step_deg == 5.0, "half the paper's 10 (see SearchParams)"
     assert search.top_n == 3, "one finalist more than the paper's 2 (see SearchParams.top_n)"
-    assert search.global_yaw_window_deg == 6.0, "headings near the prefilter's angle only"
+    assert search.global_yaw_window_deg == 5.0, "headings near the prefilter's angle only"
+    assert search.local_rotation_range_deg == 6.0, "a step beyond the largest local offset seen"
     assert Config().spacing_m == 2.0
 
 

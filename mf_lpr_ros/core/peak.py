@@ -42,3 +42,20 @@ def subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:
     if curvature >= 0:
         return 0.0, curvature
     return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)), curvature
+
+
+def circular_peak_offsets(values: np.ndarray) -> np.ndarray:
+    """Per column of values (samples of a periodic function along axis 0): the sub-sample
+    offset of its maximum, from the parabola through it and its two neighbours (wrapping
+    around), clipped to +-0.5; 0 where the three are not concave."""
+    values = np.asarray(values, dtype=np.float64)
+    n_samples, columns = values.shape[0], np.arange(values.shape[1])
+    best = np.argmax(values, axis=0)
+    left = values[(best - 1) % n_samples, columns]
+    centre = values[best, columns]
+    right = values[(best + 1) % n_samples, columns]
+    curvature = left - 2 * centre + right
+    concave = curvature < 0
+    offsets = np.zeros(len(columns))
+    offsets[concave] = 0.5 * (left - right)[concave] / curvature[concave]
+    return np.clip(offsets, -0.5, 0.5)

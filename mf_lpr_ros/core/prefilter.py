@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from mf_lpr_ros.core.array_ops import NumpyArrays
+from mf_lpr_ros.core.peak import circular_peak_offsets
 from mf_lpr_ros.core.workers import Workers
 
 _MIN_RADIUS_BINS = 1.5
@@ -150,11 +151,13 @@ class PolarSpectrumIndex(NumpyArrays):
 
     def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
         """Degrees in [0, 180) by which the query image is best turned onto each reference (its
-        spectrum's best circular shift): the yaw between them modulo half a turn."""
+        spectrum's best circular shift, refined between shifts by a parabola through it and its
+        two neighbours): the yaw between them modulo half a turn."""
         query = self._query(image)
-        correlation = self._over_angles(self._bank[:, self._index(references)], query)
-        best, _ = self._argmax_rows(correlation)
-        return np.asarray(best, dtype=np.float64) * (180.0 / self.n_angles)
+        correlation = self._to_host(self._over_angles(self._bank[:, self._index(references)],
+                                                      query))
+        return (np.argmax(correlation, axis=0) + circular_peak_offsets(correlation)) * (
+            180.0 / self.n_angles) % 180.0
 
     def top(self, image: np.ndarray, k: int, stop: int | None = None) -> np.ndarray:
         """Indices of the k best-ranked references in [0, stop), best first."""

@@ -64,8 +64,11 @@ def test_prefilter_matches_numpy():
         index.append(images[3:])
     np.testing.assert_allclose(gpu.scores(images[4], stop=6), cpu.scores(images[4], stop=6),
                                atol=1e-5)
-    np.testing.assert_array_equal(gpu.angles(images[4], np.array([4, 1])),
-                                  cpu.angles(images[4], np.array([4, 1])))
+    # Angles between bins come from the correlations' values: equal to float32 rounding,
+    # modulo half a turn.
+    difference = (gpu.angles(images[4], np.array([4, 1]))
+                  - cpu.angles(images[4], np.array([4, 1])) + 90.0) % 180.0 - 90.0
+    np.testing.assert_allclose(difference, 0.0, atol=1e-3)
 
 
 def test_search_results_match_numpy(world, tmp_path):
