@@ -133,8 +133,32 @@ def test_finalists_at_one_heading_turn_the_query_once(world, monkeypatch):
     result = index.query(describe_points(points, PARAMS))
     assert {h.reference_index for h in result.hypotheses} == {0, 1, 2}
     n_angles = len(index.local_offsets)
-    # Each finalist alone transforms 8 of the 11 angles: 24 for three.
+    # Each finalist alone transforms 5 of the 7 angles: 15 for three.
     assert 0 < sum(transformed) <= n_angles
+
+
+@pytest.mark.parametrize("n_angles", [7, 11])
+def test_the_local_stage_finds_a_smooth_peak_at_any_angle_from_part_of_them(synthetic_map,
+                                                                            n_angles):
+    """Every other angle, then the two beside the best: a peak that falls off smoothly is
+    found wherever it lies, the ends included, with both its neighbours correlated for the
+    sub-degree fit, from (n - 1) / 2 + 2 of the n angles."""
+    index = MatchedFilterIndex(synthetic_map, SearchParams(threads=1))
+    shifts = 2 * index.high_shift + 1
+    for peak in range(n_angles):
+        correlated = []
+
+        def correlate(indices, peak=peak):
+            correlated.extend(indices.tolist())
+            heights = np.exp(-0.5 * ((indices - peak) / 1.5) ** 2)
+            return np.broadcast_to(heights[:, None, None], (len(indices), shifts, shifts))
+
+        surface = index._coarse_to_fine(lambda indices: indices, n_angles, correlate)
+        per_angle = surface.reshape(n_angles, -1).max(axis=1)
+        assert int(np.argmax(per_angle)) == peak
+        neighbours = [k for k in (peak - 1, peak + 1) if 0 <= k < n_angles]
+        assert np.isfinite(per_angle[neighbours]).all()
+        assert len(correlated) == len(set(correlated)) == (n_angles - 1) // 2 + 2
 
 
 def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):
