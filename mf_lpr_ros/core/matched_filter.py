@@ -50,17 +50,36 @@ class AllowedScores:
 class _ReferenceImages(NumpyArrays):
     """What every bank keeps: the references' spectra (_bank, one reference per index of its
     _REFERENCE_AXIS), their images' norms (_norms) and how many are filled (_count). A bank
-    makes its storage (_new_bank) and adds references (append)."""
+    makes its storage (_new_bank) and its references' spectra in that layout (_spectra)."""
 
     _REFERENCE_AXIS = 0
     _bank: np.ndarray
     _norms: np.ndarray
     _count: int
 
+    def _start_empty(self, capacity: int) -> None:
+        self._bank = self._new_bank(max(capacity, 1))
+        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
+        self._count = 0
+
+    def append(self, images: np.ndarray) -> None:
+        """Add references, (n, H, W) float32."""
+        images = np.asarray(images, dtype=np.float32)
+        spectra = self._spectra(images)
+        start, stop = self._count, self._count + len(images)
+        self._reserve(stop)
+        self._bank[self._references(start, stop)] = self._from_host(spectra)
+        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
+        self._count = stop
+
     def refill(self, images: np.ndarray) -> None:
         """Replace every reference by images, keeping the storage."""
         self._count = 0
         self.append(images)
+
+    def _references(self, start: int, stop: int) -> tuple[slice, ...]:
+        """The index of references [start, stop) in the storage."""
+        return (slice(None),) * self._REFERENCE_AXIS + (slice(start, stop),)
 
     def _reserve(self, needed: int) -> None:
         """Room for needed references, growing by doubling (the filled ones kept)."""
@@ -68,7 +87,7 @@ class _ReferenceImages(NumpyArrays):
         if needed <= capacity:
             return
         new_capacity = max(needed, 2 * capacity)
-        filled = (slice(None),) * self._REFERENCE_AXIS + (slice(0, self._count),)
+        filled = self._references(0, self._count)
         bank = self._new_bank(new_capacity)
         bank[filled] = self._bank[filled]
         norms = np.zeros(new_capacity, dtype=np.float32)
@@ -98,33 +117,25 @@ class SpectralBank(_ReferenceImages):
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
                  workers: Workers | None = None) -> None:
-        if max_shift < 0:
-            raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+        _require_shift(max_shift)
         self.height, self.width, self.max_shift = height, width, max_shift
         self.n_shifts = 2 * max_shift + 1
         self.fft_length = width + max_shift
         self.n_freqs = self.fft_length // 2 + 1
-        self._bank = self._new_bank(max(capacity, 1))
-        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
-        self._count = 0
+        self._start_empty(capacity)
         self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
         self._operator = np.empty(0, dtype=np.complex64)
         self.workers = workers or Workers()
         # One buffer per worker thread of _allowed_scores.
         self._one_query_operators = [np.empty(0, dtype=np.complex64)] * self.workers.threads
 
-    def append(self, images: np.ndarray) -> None:
-        """Add references, (n, H, W) float32."""
-        images = np.asarray(images, dtype=np.float32)
+    def _spectra(self, images: np.ndarray) -> np.ndarray:
+        """(n, K, H) row spectra of images (n, H, W)."""
         if images.ndim != 3 or images.shape[1:] != (self.height, self.width):
             raise ValueError(f"expected (n, {self.height}, {self.width}) images, "
                              f"got {images.shape}")
-        start, stop = self._count, self._count + len(images)
-        self._reserve(stop)
-        spectra = sp_fft.rfft(images, n=self.fft_length, axis=2).transpose(0, 2, 1)
-        self._bank[start:stop] = self._from_host(np.ascontiguousarray(spectra))
-        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
-        self._count = stop
+        return np.ascontiguousarray(
+            sp_fft.rfft(images, n=self.fft_length, axis=2).transpose(0, 2, 1))
 
     def _new_bank(self, capacity: int) -> np.ndarray:
         return np.zeros((capacity, self.n_freqs, self.height), dtype=np.complex64)
@@ -324,6 +335,11 @@ class SpectralBank(_ReferenceImages):
         return located
 
 
+def _require_shift(max_shift: int) -> None:
+    if max_shift < 0:
+        raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+
+
 def _half_spectrum_weights(length: int, n_freqs: int) -> np.ndarray:
     """How often each frequency of a real signal's half spectrum counts in its inverse: twice,
     but once for the mean and for the Nyquist frequency of an even length."""
@@ -415,8 +431,7 @@ class PairBank(_ReferenceImages):
     _REFERENCE_AXIS = 1
 
     def __init__(self, size: int, max_shift: int, capacity: int = 1) -> None:
-        if max_shift < 0:
-            raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+        _require_shift(max_shift)
         self.size, self.max_shift = size, max_shift
         self.length = size + max_shift
         self.n_freqs = self.length // 2 + 1
@@ -427,9 +442,7 @@ class PairBank(_ReferenceImages):
         weight = _half_spectrum_weights(self.length, self.n_freqs)
         self._along_x = (weight[:, None] * np.exp(phase * np.outer(np.arange(self.n_freqs), shifts))
                          / self.length).astype(np.complex64)
-        self._bank = self._new_bank(max(capacity, 1))
-        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
-        self._count = 0
+        self._start_empty(capacity)
 
     def _spectra(self, images: np.ndarray) -> np.ndarray:
         """(L, n, F) spectra of images (n, size, size), zero-padded to the linear window."""
@@ -440,15 +453,6 @@ class PairBank(_ReferenceImages):
 
     def _new_bank(self, capacity: int) -> np.ndarray:
         return np.zeros((self.length, capacity, self.n_freqs), dtype=np.complex64)
-
-    def append(self, images: np.ndarray) -> None:
-        """Add references, (n, size, size)."""
-        spectra = self._spectra(images)
-        start, stop = self._count, self._count + spectra.shape[1]
-        self._reserve(stop)
-        self._bank[:, start:stop] = spectra
-        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
-        self._count = stop
 
     def best(self, queries: np.ndarray, references: np.ndarray, query_of_pair: np.ndarray
              ) -> np.ndarray:

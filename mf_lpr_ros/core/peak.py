@@ -44,10 +44,11 @@ def subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:
     return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)), curvature
 
 
-def circular_peak_offsets(values: np.ndarray) -> np.ndarray:
-    """Per column of values (samples of a periodic function along axis 0): the sub-sample
-    offset of its maximum, from the parabola through it and its two neighbours (wrapping
-    around), clipped to +-0.5; 0 where the three are not concave."""
+def circular_peaks(values: np.ndarray) -> np.ndarray:
+    """Per column of values (samples of a periodic function along axis 0): where its maximum
+    lies, in samples, refined by the parabola through the best sample and its two neighbours
+    (wrapping around) by at most half a sample; the best sample itself where the three are not
+    concave."""
     values = np.asarray(values, dtype=np.float64)
     n_samples, columns = values.shape[0], np.arange(values.shape[1])
     best = np.argmax(values, axis=0)
@@ -58,4 +59,4 @@ def circular_peak_offsets(values: np.ndarray) -> np.ndarray:
     concave = curvature < 0
     offsets = np.zeros(len(columns))
     offsets[concave] = 0.5 * (left - right)[concave] / curvature[concave]
-    return np.clip(offsets, -0.5, 0.5)
+    return best + np.clip(offsets, -0.5, 0.5)

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from mf_lpr_ros.core.array_ops import NumpyArrays
-from mf_lpr_ros.core.peak import circular_peak_offsets
+from mf_lpr_ros.core.peak import circular_peaks
 from mf_lpr_ros.core.workers import Workers
 
 _MIN_RADIUS_BINS = 1.5
@@ -156,8 +156,7 @@ class PolarSpectrumIndex(NumpyArrays):
         query = self._query(image)
         correlation = self._to_host(self._over_angles(self._bank[:, self._index(references)],
                                                       query))
-        return (np.argmax(correlation, axis=0) + circular_peak_offsets(correlation)) * (
-            180.0 / self.n_angles) % 180.0
+        return circular_peaks(correlation) * (180.0 / self.n_angles) % 180.0
 
     def top(self, image: np.ndarray, k: int, stop: int | None = None) -> np.ndarray:
         """Indices of the k best-ranked references in [0, stop), best first."""

@@ -327,8 +327,7 @@ class MatchedFilterIndex:
                                                       allowed)
         else:
             scores = self.bank.best_per_reference(prepared, n_refs, self.search.chunk_size)
-        if self.search.score_normalisation == "cosine":
-            scores = scores / np.maximum(self.bank.norms[columns], 1e-6)
+        scores = self._normalised(scores, self.bank.norms[columns])
         n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
         order = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
         order = order[np.argsort(-scores[order], kind="stable")]
@@ -575,9 +574,15 @@ class MatchedFilterIndex:
         # np.nonzero lists the pairs by position: each reference's best over its headings.
         scores = np.maximum.reduceat(pair_scores, np.searchsorted(positions,
                                                                   np.arange(len(wide))))
-        if self.search.score_normalisation == "cosine":
-            scores = scores / np.maximum(self.coarse_bank.norms[columns], 1e-6)
+        scores = self._normalised(scores, self.coarse_bank.norms[columns])
         return wide[np.argsort(-scores, kind="stable")]
+
+    def _normalised(self, scores: np.ndarray, reference_norms: np.ndarray) -> np.ndarray:
+        """Global-stage scores as search.score_normalisation ranks them: divided by each
+        reference image's norm under "cosine", as they are under "raw"."""
+        if self.search.score_normalisation == "cosine":
+            return scores / np.maximum(reference_norms, 1e-6)
+        return scores
 
     def _expanded(self, searched: np.ndarray, n_refs: int) -> np.ndarray:
         """searched, then the references near its leaders that it lacks (prefilter_expand_m),

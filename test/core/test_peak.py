@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from mf_lpr_ros.core.peak import circular_peak_offsets
+from mf_lpr_ros.core.peak import circular_peaks
 
 
 def periodic_peaks(centres: np.ndarray, n_samples: int = 40) -> np.ndarray:
@@ -12,19 +12,19 @@ def periodic_peaks(centres: np.ndarray, n_samples: int = 40) -> np.ndarray:
     return np.exp(4.0 * np.cos(phase))
 
 
-def test_offsets_find_peaks_between_samples_and_across_the_wrap():
+def test_peaks_found_between_samples_and_across_the_wrap():
     centres = np.array([10.0, 10.3, 10.7, 0.2, 39.6, 39.9])
     values = periodic_peaks(centres)
-    estimate = np.argmax(values, axis=0) + circular_peak_offsets(values)
+    estimate = circular_peaks(values)
     error = (estimate - centres + 20.0) % 40.0 - 20.0
     # A parabola through three samples of a smooth bump: within a tenth of a sample.
     np.testing.assert_allclose(error, 0.0, atol=0.1)
-    # Peaks at sample 0 and 39 take their other neighbour from the far end.
-    assert circular_peak_offsets(values[:, 3:4])[0] > 0.1
-    assert circular_peak_offsets(values[:, 4:5])[0] < -0.1
+    # Peaks nearest sample 0 take their other neighbour from the far end (39.6 reads -0.4).
+    assert circular_peaks(values[:, 3:4])[0] > 0.1
+    assert circular_peaks(values[:, 4:5])[0] < -0.1
 
 
 def test_a_flat_top_gives_no_offset_and_a_plateau_of_two_its_middle():
-    assert circular_peak_offsets(np.ones((8, 1)))[0] == 0.0
+    assert circular_peaks(np.ones((8, 1)))[0] == 0.0
     plateau = np.array([[0.0], [1.0], [2.0], [3.0], [3.0], [1.0], [0.0], [0.0]])
-    assert circular_peak_offsets(plateau)[0] == 0.5
+    assert circular_peaks(plateau)[0] == 3.5
