@@ -22,10 +22,10 @@ def _bevplace(folder: str, sequences: tuple[str, ...]) -> tuple[tuple[Rule, ...]
     rules, published = [], []
     for sequence in sequences:
         database, queries = _BEVPLACE_FRAMES[sequence]
-        protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=database,
-                            query_frames=queries)
         for suffix, recall in zip(("", "_rot"), _BEVPLACE_RECALL[sequence]):
             pattern = f"{folder}/{sequence}{suffix}"
+            protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=database,
+                                query_frames=queries, headings_known=suffix != "_rot")
             rules.append(Rule("single", "kitti", protocol, (pattern,)))
             published.append(Published(pattern.replace("/", "_"), "BEVPlace (published)",
                                        recall / 100.0))
@@ -42,7 +42,8 @@ _BEVPLACE_TUNING = _bevplace("kitti_bev", ("00",))
 _BEVPLACE_SPARSE_DATABASE = tuple(
     Rule("single", "kitti", Protocol(5.0, reference_spacing_m=8.0,
                                      reference_frames=_BEVPLACE_FRAMES["00"][0],
-                                     query_frames=_BEVPLACE_FRAMES["00"][1]),
+                                     query_frames=_BEVPLACE_FRAMES["00"][1],
+                                     headings_known=suffix != "_rot"),
          (f"kitti_bev/00{suffix}",), label="8 m database") for suffix in ("", "_rot"))
 
 
@@ -69,8 +70,8 @@ _BEVPLACE_TEXT = ("BEVPlace's KITTI protocol on its BEV images: database frames 
                   "02: 0-3399, 05: 0-999, 06: 0-599 (every frame a reference), queries 00: "
                   "3200-4540, 02: 3600-4660, 05: 1200-2750, 06: 800-1100, 5 m (2-D); each "
                   "sequence and its _rot copy (every frame turned by its own random yaw, poses "
-                  "unrotated: only retrieval recall@1 is meaningful there), with BEVPlace's "
-                  "published recall@1 beside")
+                  "unrotated: only retrieval is scored there, the pose figures are NaN), "
+                  "with BEVPlace's published recall@1 beside")
 
 
 _PAPER_NCLT = Protocol(25.0, reference_spacing_m=4.0, query_spacing_m=10.0)

@@ -50,7 +50,14 @@ class QueryRecord:
     searched_nearest_m: float = math.nan
 
 
-def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int) -> dict:
+# The figures that score an estimated pose, not a retrieval: NaN where poses cannot be scored.
+POSE_FIGURES = ("recall_at_1_corrected", "rte_mean_m", "rte_std_m", "rre_mean_deg",
+                "rre_std_deg", "success_rate", "closures_false", "precision_published",
+                "recall_published", "recall_at_100_precision")
+
+
+def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int, *,
+              poses_scored: bool = True) -> dict:
     """Metrics of docs/METHOD.md section 5 from per-query records.
 
     recall_at_1: the retrieved reference lies within tolerance (retrieval recall).
@@ -71,6 +78,9 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
     precision_published; recall_published, the positive queries with a correct published
     closure; recall_at_100_precision, the largest recall over confidence thresholds with no
     false match above the threshold (before verification).
+
+    poses_scored False (Protocol.headings_known): POSE_FIGURES are NaN, and so is the
+    corrected curve of recall_vs_threshold.
     """
     def column(values) -> np.ndarray:
         return np.fromiter(values, dtype=float, count=len(records))
@@ -106,7 +116,7 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
     published = np.array([r.published for r in records], dtype=bool)
     closure_correct = rte <= tolerance_m
     n_published = int(published.sum())
-    return {
+    summary = {
         "n_queries": n_positive,
         "n_evaluated": len(records),
         "n_references": n_references,
@@ -140,6 +150,10 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int)
         "ms_global": stat(ms_global, np.median),
         "ms_local": stat(ms_local, np.median),
     }
+    if not poses_scored:
+        summary.update(dict.fromkeys(POSE_FIGURES, math.nan))
+        summary["recall_vs_threshold"]["corrected"] = [math.nan] * len(thresholds)
+    return summary
 
 
 def recall_at_full_precision(confidence: np.ndarray, true_match: np.ndarray,

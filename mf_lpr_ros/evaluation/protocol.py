@@ -49,6 +49,11 @@ class Protocol:
     exclude_recent_s: float = 0.0
     reference_frames: tuple[int, int] | None = None
     query_frames: tuple[int, int] | None = None
+    # False where each image is turned by its own unknown yaw while the poses are the
+    # unturned scans' (BEVPlace's rotated copies): a retrieval can be scored there, an estimated
+    # pose cannot (it carries the reference image's unknown turn), so the summary's pose-based
+    # figures are NaN (metrics.POSE_FIGURES).
+    headings_known: bool = True
 
     def __post_init__(self) -> None:
         if not self.tolerance_m > 0:
@@ -257,7 +262,8 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     config, profile = resolve_for_sequence(config, reference)
     runner = make_method(method, config)
     records = run_protocol(runner, reference, selection, query=query, progress=progress)
-    summary = summarise(records, protocol.tolerance_m, len(selection.references))
+    summary = summarise(records, protocol.tolerance_m, len(selection.references),
+                        poses_scored=protocol.headings_known)
     if profile is not None:
         summary["auto"] = map_metadata(profile, config.descriptor)
     return PairResult(runner.name, summary, records)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.datasets import Sequence
-from mf_lpr_ros.evaluation.metrics import QueryRecord, summarise
+from mf_lpr_ros.evaluation.benchmarks import SUITES
+from mf_lpr_ros.evaluation.metrics import POSE_FIGURES, QueryRecord, summarise
 from mf_lpr_ros.evaluation.protocol import Protocol, select
 
 
@@ -86,6 +87,30 @@ def test_published_closure_metrics_count_what_a_back_end_would_receive():
     assert summary["recall_at_100_precision"] == pytest.approx(2 / 4)
     nothing = summarise([_record(1.0, 1.0, 0.5, 1.0, 0.9, [1.0])], 3.0, 1)
     assert nothing["closures_published"] == 0 and np.isnan(nothing["precision_published"])
+
+
+def test_where_headings_are_unknown_retrieval_is_scored_and_poses_are_not():
+    """Images turned by unknown yaws (BEVPlace's rotated copies): a retrieval still counts,
+    but a pose, carrying the reference image's unknown turn, is not scored, nor are the
+    closures judged by it."""
+    records = [_record(1.0, 1.0, 9.0, 130.0, 0.9, [1.0], published=True),
+               _record(1.0, 9.0, 0.5, 1.0, 0.8, [9.0, 1.0])]
+    scored = summarise(records, tolerance_m=3.0, n_references=2)
+    unscored = summarise(records, tolerance_m=3.0, n_references=2, poses_scored=False)
+    assert scored["closures_false"] == 1 and scored["recall_at_1_corrected"] == 0.5
+    for figure in POSE_FIGURES:
+        assert np.isnan(unscored[figure]), figure
+    assert all(np.isnan(unscored["recall_vs_threshold"]["corrected"]))
+    for figure in ("recall_at_1", "recall_at_5", "closures_published", "f1_max"):
+        assert unscored[figure] == scored[figure], figure
+    assert unscored["recall_at_1"] == 0.5 and unscored["closures_published"] == 1
+
+
+def test_only_the_rotated_copies_leave_their_poses_unscored():
+    for suite in ("tuning", "kitti-bevplace"):
+        for rule in SUITES[suite].rules:
+            rotated = any(pattern.endswith("_rot") for pattern in rule.references)
+            assert rule.protocol.headings_known is not rotated, rule
 
 
 def test_summary_metrics_follow_their_definitions():

@@ -52,7 +52,8 @@ def test_kitti_bevplace_preset_uses_bevplaces_splits_and_published_figures(tmp_p
         ("kitti_bev", "00"), ("holdout_kitti_bev", "02"), ("holdout_kitti_bev", "05"),
         ("holdout_kitti_bev", "06")) for r in ("", "_rot"))
     assert pairs["holdout_kitti_bev_02_rot"].protocol == Protocol(
-        5.0, reference_spacing_m=0.0, reference_frames=(0, 3399), query_frames=(3600, 4660))
+        5.0, reference_spacing_m=0.0, reference_frames=(0, 3399), query_frames=(3600, 4660),
+        headings_known=False)
     assert all(p.query is None and p.preset == "kitti" for p in pairs.values())
     published = {(f.pair, f.recall_at_1) for f in SUITES["kitti-bevplace"].published}
     assert ("holdout_kitti_bev_02_rot", 0.935) in published and len(published) == 8
