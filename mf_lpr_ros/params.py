@@ -146,6 +146,16 @@ class SearchParams:
         tuning sets (KITTI 00 BEV: 0.47, BALM handheld: 0.35); the handheld preset uses its
         own. Alone it cannot reach zero false closures on KITTI 00 short of 0.5 (recall 0.70);
         with distinctiveness and odometry consistency it does at 0.4 (recall 0.93).
+    min_relative_confidence: a match under min_confidence still passes the confidence test
+        when its confidence reaches this fraction of its place's similarity
+        (MatchResult.place_similarity: how well the map's own nearest other view of the
+        matched place aligns on it). A revisit matches about as well as the map's neighbouring
+        views match each other, wherever the sensor and the scene put that level; a look-alike
+        mostly matches worse (KITTI 00 every frame: wrong matches under 0.4 reach at most 0.80
+        of their places' similarity, 0.64 at the 95th percentile; docs/RESULTS.md, session
+        31). Not a guard alone (on a map of one place, the HKU Avia keyframes, wrong matches
+        reach it too): distinctiveness and odometry consistency still apply. 0 = off
+        (min_confidence alone).
     chunk_size: references processed per block in the global stage (memory vs. speed).
     prefilter_top_k: the global stage correlates only the k references that a rotation- and
         translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/core/prefilter.py);
@@ -301,6 +311,7 @@ class SearchParams:
     local_rotation_step_deg: float = 2.0
     score_normalisation: str = "cosine"
     min_confidence: float = 0.4
+    min_relative_confidence: float = 0.9
     chunk_size: int = 256
     prefilter_top_k: int = 64
     prefilter_rescore_k: int = 0
@@ -340,6 +351,8 @@ class SearchParams:
                  "'raw' or 'cosine'", self.score_normalisation)
         require_parameter(0.0 <= self.min_confidence <= 1.0, "min_confidence", "in [0, 1]",
                  self.min_confidence)
+        require_parameter(self.min_relative_confidence >= 0.0, "min_relative_confidence",
+                          ">= 0 (0 = off)", self.min_relative_confidence)
         require_parameter(self.chunk_size >= 1, "chunk_size", ">= 1", self.chunk_size)
         require_parameter(self.threads >= 1, "threads", ">= 1", self.threads)
         require_parameter(self.prefilter_top_k >= 0, "prefilter_top_k", ">= 0 (0 = exhaustive)",

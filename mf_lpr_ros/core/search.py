@@ -102,6 +102,11 @@ class MatchResult:
         prefilter's list and its map neighbours); None: every active reference was searched.
         A true place missing from it can be reported only as the place nearest the match
         (the re-ranking): what the candidate stage loses.
+    place_similarity: how alike the map's own views of the matched place are
+        (MatchedFilterIndex.place_similarity of the scored reference), the yardstick of
+        SearchParams.min_relative_confidence. Measured only for a match under min_confidence
+        (the relative test is needed nowhere else); NaN otherwise, and where the place has no
+        other view within distinct_radius_m.
     """
 
     reference_index: int
@@ -119,6 +124,15 @@ class MatchResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     scored_reference: int | None = None
     searched: np.ndarray | None = None
+    place_similarity: float = math.nan
+
+
+def passes_confidence(confidence: float, place_similarity: float, search: SearchParams) -> bool:
+    """The confidence test: min_confidence, or else min_relative_confidence of the place's
+    similarity (a NaN similarity fails the relative part)."""
+    return confidence >= search.min_confidence or (
+        search.min_relative_confidence > 0
+        and confidence >= search.min_relative_confidence * place_similarity)
 
 
 class MatchedFilterIndex:
@@ -194,6 +208,8 @@ class MatchedFilterIndex:
         self._query_lock = threading.Lock()
         self._indexed = 0
         self._positions: cKDTree | None = None
+        # place_similarity by reference: (the view it was measured from, the figure).
+        self._place_similarity: dict[int, tuple[int, float]] = {}
         # What became of the prefilter cache beside the map file (on demand only).
         self.prefilter_cache_status = "not used"
         self.sync()
@@ -285,7 +301,8 @@ class MatchedFilterIndex:
         result = self._search(occupancy, n_refs, top_k)
         retries = request or self.search.prefilter_retry == "every_query"
         if (retries and self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
-                and result.confidence < self.search.min_confidence):
+                and not passes_confidence(result.confidence, result.place_similarity,
+                                          self.search)):
             # Where the prefilter left the true place out, the match found instead is weak
             # (SearchParams.prefilter_retry_top_k): search its wider list.
             first_ms = result.timings_ms
@@ -370,9 +387,13 @@ class MatchedFilterIndex:
                 aligned[reference] = local_peaks(np.array([position]))[0]
             return aligned[reference]
 
+        if (result.confidence < self.search.min_confidence
+                and self.search.min_relative_confidence > 0):
+            result.place_similarity = self.place_similarity(finalists[0].reference, n_refs)
         result.distinctiveness, result.local_distinctiveness = self._distinctiveness_tests(
-            searched, scores, finalists[0], match_pose, result.confidence, ranked, align,
-            aligned)
+            searched, scores, finalists[0], match_pose,
+            passes_confidence(result.confidence, result.place_similarity, self.search), ranked,
+            align, aligned)
         result.hypotheses = [Hypothesis(result.reference_index, result.pose, result.score,
                                         result.confidence)]
         for peak in peaks[1:]:
@@ -457,6 +478,50 @@ class MatchedFilterIndex:
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
         return float(self.global_angles[index])
 
+    def place_similarity(self, reference: int, n_refs: int | None = None) -> float:
+        """How alike the map's own views of a place are: the confidence of the nearest other
+        reference among the first n_refs (the active ones; default all), within
+        distinct_radius_m, aligned on this one by the local stage; NaN without one.
+
+        The two views are aligned at the yaw between their map poses and at the yaw their
+        prefilter spectra give (both halves), the best kept: where the map's headings are off
+        (a map of turned images), its places still measure as alike as they are, and where
+        the spectra's angle is off (views farther apart), the poses' holds. Kept per
+        reference while its nearest other view stays the same (a growing map may bring a
+        nearer one). Runs inside a query: the query's turned views and footprint are put back
+        afterwards.
+        """
+        n_refs = len(self) if n_refs is None else min(n_refs, len(self))
+        if self._positions is None or self._positions.n != len(self):
+            self._positions = cKDTree(self.map.poses[: len(self), :2, 3])
+        position = self.map.poses[reference, :2, 3]
+        near = np.array([found for found in self._positions.query_ball_point(
+            position, self.search.distinct_radius_m) if found < n_refs and found != reference],
+            dtype=np.int64)
+        if not len(near):
+            return math.nan
+        offsets = self.map.poses[near, :2, 3] - position
+        neighbour = int(near[np.argmin(np.einsum("nc,nc->n", offsets, offsets))])
+        kept = self._place_similarity.get(reference)
+        if kept is not None and kept[0] == neighbour:
+            return kept[1]
+        occupancy = self.map.occupancy(neighbour)
+        angles = [math.degrees(planar(self.map.poses[neighbour])[2]
+                               - planar(self.map.poses[reference])[2])]
+        if self.prefilter is not None:
+            half = float(self.prefilter.angles(self._low_references(np.array([neighbour]))[0],
+                                               np.array([reference]))[0])
+            angles += [half, half + 180.0]
+        query_state = self._turned_query, self._query_seen
+        self._turned_query, self._query_seen = {}, self._seen(occupancy)
+        try:
+            similarity = max(self._local(occupancy, reference, angle).confidence
+                             for angle in angles)
+        finally:
+            self._turned_query, self._query_seen = query_state
+        self._place_similarity[reference] = (neighbour, similarity)
+        return similarity
+
     def _elsewhere(self, searched: np.ndarray, reference: int) -> np.ndarray:
         """Positions in searched of the references farther than distinct_radius_m from
         reference: another place."""
@@ -465,7 +530,7 @@ class MatchedFilterIndex:
                               > self.search.distinct_radius_m ** 2)
 
     def _distinctiveness_tests(self, searched: np.ndarray, scores: np.ndarray,
-                               match: "_LocalPeak", match_pose: np.ndarray, confidence: float,
+                               match: "_LocalPeak", match_pose: np.ndarray, confident: bool,
                                ranked: np.ndarray, align: Callable[[int], "_LocalPeak"],
                                aligned: dict[int, "_LocalPeak"]) -> tuple[float, float]:
         """(distinctiveness, local_distinctiveness) of the match (see MatchResult). The
@@ -474,7 +539,7 @@ class MatchedFilterIndex:
         elsewhere = self._elsewhere(searched, match.reference)
         distinctiveness = self._distinctiveness(searched, scores, match.reference, elsewhere)
         search = self.search
-        if distinctiveness >= search.min_distinctiveness or confidence < search.min_confidence:
+        if distinctiveness >= search.min_distinctiveness or not confident:
             return distinctiveness, math.nan
         if search.distinct_aligned_rivals > 0:
             elsewhere = self._other_answers(searched, scores, elsewhere, match_pose, ranked,

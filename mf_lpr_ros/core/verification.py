@@ -3,7 +3,9 @@ out of a pose graph (docs/METHOD.md, our additions). One code path for the live 
 and `evaluate`.
 
 A match is published when, in this order (cheap tests first, each only on what passed before):
-1. its confidence reaches search.min_confidence and its score min_score;
+1. its confidence reaches search.min_confidence, or else search.min_relative_confidence of
+   its place's similarity (MatchResult.place_similarity: a revisit matches about as well as
+   the map's own neighbouring views match each other), and its score reaches min_score;
 2. its distinctiveness (best place vs the best other place, MatchResult.distinctiveness)
    reaches search.min_distinctiveness, or the same comparison at the local stage's
    resolution (local_distinctiveness) reaches search.min_local_distinctiveness: a look-alike
@@ -40,7 +42,7 @@ from typing import Any, Callable
 import numpy as np
 
 from mf_lpr_ros.core.pose import compose_planar, planar_error, relative_planar
-from mf_lpr_ros.core.search import MatchResult
+from mf_lpr_ros.core.search import MatchResult, passes_confidence
 from mf_lpr_ros.params import SearchParams
 
 
@@ -247,9 +249,8 @@ class MatchVerifier:
             return Verdict(False, "no reference to search yet")
         search = self.search
         reasons = []
-        if match.confidence < search.min_confidence:
-            reasons.append(f"confidence {match.confidence:.3f} < min_confidence "
-                           f"{search.min_confidence}")
+        if not passes_confidence(match.confidence, match.place_similarity, search):
+            reasons.append(self._weak_reason(match))
         if match.score < self.min_score:
             reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
         indistinct = not distinct(match, search)
@@ -281,6 +282,14 @@ class MatchVerifier:
                                   f"consistency_min_support is {search.consistency_min_support}",
                            fitness, support, confirms)
         return Verdict(True, "accepted", fitness, support, confirms)
+
+    def _weak_reason(self, match: MatchResult) -> str:
+        search = self.search
+        relative = (f" and < min_relative_confidence {search.min_relative_confidence} x place "
+                    f"similarity {match.place_similarity:.3f}"
+                    if search.min_relative_confidence > 0 else "")
+        return (f"confidence {match.confidence:.3f} < min_confidence {search.min_confidence}"
+                + relative)
 
     def _indistinct_reason(self, match: MatchResult) -> str:
         search = self.search

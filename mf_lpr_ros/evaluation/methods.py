@@ -35,8 +35,8 @@ class Retrieval:
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
     (their order among this method's queries) it would now publish, confirmed late;
-    distinctiveness and reason: see QueryRecord; searched: the references its candidate stage
-    kept for the full comparison (None: the method does not say)."""
+    distinctiveness, place_similarity and reason: see QueryRecord; searched: the references
+    its candidate stage kept for the full comparison (None: the method does not say)."""
 
     reference: int
     pose: np.ndarray
@@ -50,6 +50,7 @@ class Retrieval:
     local_distinctiveness: float = math.nan
     reason: str = ""
     searched: np.ndarray | None = None
+    place_similarity: float = math.nan
 
 
 class MatchedFilterMethod:
@@ -94,7 +95,8 @@ class MatchedFilterMethod:
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
                          verdict.confirms, match.distinctiveness, match.local_distinctiveness,
                          verdict.reason,
-                         np.arange(n_active) if match.searched is None else match.searched)
+                         np.arange(n_active) if match.searched is None else match.searched,
+                         match.place_similarity)
 
 
 class ScanContextMethod:

@@ -27,6 +27,7 @@ class QueryRecord:
     figure is NaN where it was not needed): why a revisit was not published can be read off
     a run. searched_nearest_m: the nearest to the truth of the references the method's
     candidate stage kept for the full comparison; NaN when the method does not say.
+    place_similarity: MF-LPR's yardstick for a match under min_confidence (NaN elsewhere).
     """
 
     query_index: int
@@ -48,6 +49,7 @@ class QueryRecord:
     local_distinctiveness: float = math.nan
     reason: str = ""
     searched_nearest_m: float = math.nan
+    place_similarity: float = math.nan
 
 
 # The figures that score an estimated pose, not a retrieval: NaN where poses cannot be scored.

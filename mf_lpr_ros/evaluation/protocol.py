@@ -208,7 +208,8 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             distinctiveness=float(retrieval.distinctiveness),
             local_distinctiveness=float(retrieval.local_distinctiveness),
             reason=retrieval.reason,
-            searched_nearest_m=_nearest_of(distances, retrieval.searched)))
+            searched_nearest_m=_nearest_of(distances, retrieval.searched),
+            place_similarity=float(retrieval.place_similarity)))
         for earlier in retrieval.confirms:
             records[earlier].published = True
             records[earlier].reason = reason_when_confirmed(records[earlier].reason)

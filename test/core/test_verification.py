@@ -106,12 +106,29 @@ def test_local_distinctiveness_is_only_computed_when_the_global_test_fails(world
 
 
 def _match(pose, confidence=0.8, distinctiveness=0.8,
-           local_distinctiveness=math.nan, score=1.0) -> MatchResult:
+           local_distinctiveness=math.nan, score=1.0, place_similarity=math.nan) -> MatchResult:
     return MatchResult(reference_index=0, score=score, confidence=confidence,
                        shift_m=np.zeros(2), rotation_rad=0.0, pose=np.asarray(pose, float),
                        covariance=np.eye(3), relative_covariance=np.eye(3),
                        candidates=np.zeros(1, int), distinctiveness=distinctiveness,
-                       local_distinctiveness=local_distinctiveness)
+                       local_distinctiveness=local_distinctiveness,
+                       place_similarity=place_similarity)
+
+
+@pytest.mark.parametrize("relative, similarity, accepted", [
+    (0.9, 0.32, True), (0.9, 0.40, False), (0.0, 0.32, False), (0.9, math.nan, False)])
+def test_a_weak_match_passes_where_its_place_is_as_weakly_alike(relative, similarity, accepted):
+    """Under min_confidence, a match passes the confidence test when it reaches
+    min_relative_confidence of its place's similarity (0.3 >= 0.9 x 0.32), not where the
+    place's own views are more alike (0.9 x 0.40), nor with the test off or no yardstick."""
+    search = SearchParams(min_confidence=0.4, min_relative_confidence=relative,
+                          consistency_min_support=0)
+    verdict = MatchVerifier(search, odometry_known=False).verify(
+        _match([1.0, 2.0, 0.1], confidence=0.3, place_similarity=similarity))
+    assert verdict.accepted is accepted, verdict.reason
+    if not accepted:
+        assert verdict.reason.startswith("confidence 0.300 < min_confidence 0.4")
+        assert ("place similarity" in verdict.reason) is (relative > 0)
 
 
 @pytest.mark.parametrize("min_local, local, accepted", [
