@@ -389,7 +389,7 @@ class MatchedFilterIndex:
 
         if (result.confidence < self.search.min_confidence
                 and self.search.min_relative_confidence > 0):
-            result.place_similarity = self.place_similarity(finalists[0].reference, n_refs)
+            result.place_similarity = self._place_similarity_of(finalists[0].reference, n_refs)
         result.distinctiveness, result.local_distinctiveness = self._distinctiveness_tests(
             searched, scores, finalists[0], match_pose,
             passes_confidence(result.confidence, result.place_similarity, self.search), ranked,
@@ -478,10 +478,23 @@ class MatchedFilterIndex:
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
         return float(self.global_angles[index])
 
+    def _reference_positions(self) -> cKDTree:
+        """The references' positions as a spatial index, built when first needed after the map
+        grew (not on every sync of a live map)."""
+        if self._positions is None or self._positions.n != len(self):
+            self._positions = cKDTree(self.map.poses[: len(self), :2, 3])
+        return self._positions
+
     def place_similarity(self, reference: int, n_refs: int | None = None) -> float:
         """How alike the map's own views of a place are: the confidence of the nearest other
         reference among the first n_refs (the active ones; default all), within
-        distinct_radius_m, aligned on this one by the local stage; NaN without one.
+        distinct_radius_m, aligned on this one by the local stage; NaN without one. Waits
+        for a running query (it uses the query's buffers)."""
+        with self._query_lock:
+            return self._place_similarity_of(reference, n_refs)
+
+    def _place_similarity_of(self, reference: int, n_refs: int | None = None) -> float:
+        """place_similarity, inside a query.
 
         The two views are aligned at the yaw between their map poses and at the yaw their
         prefilter spectra give (both halves), the best kept: where the map's headings are off
@@ -492,10 +505,8 @@ class MatchedFilterIndex:
         afterwards.
         """
         n_refs = len(self) if n_refs is None else min(n_refs, len(self))
-        if self._positions is None or self._positions.n != len(self):
-            self._positions = cKDTree(self.map.poses[: len(self), :2, 3])
         position = self.map.poses[reference, :2, 3]
-        near = np.array([found for found in self._positions.query_ball_point(
+        near = np.array([found for found in self._reference_positions().query_ball_point(
             position, self.search.distinct_radius_m) if found < n_refs and found != reference],
             dtype=np.int64)
         if not len(near):
@@ -656,13 +667,10 @@ class MatchedFilterIndex:
         radius = self.search.prefilter_expand_m
         if radius <= 0:
             return searched
-        if self._positions is None or self._positions.n != len(self):
-            # Built when first needed after the map grew, not on every sync of a live map.
-            self._positions = cKDTree(self.map.poses[: len(self), :2, 3])
         leaders = self.map.poses[searched[:_EXPANDED_LEADERS], :2, 3]
         near = np.unique(np.concatenate(
             [np.asarray(found, dtype=np.int64)
-             for found in self._positions.query_ball_point(leaders, radius)]))
+             for found in self._reference_positions().query_ball_point(leaders, radius)]))
         near = np.setdiff1d(near[near < n_refs], searched, assume_unique=True)
         if len(near) > len(searched):
             distances, _ = cKDTree(leaders).query(self.map.poses[near, :2, 3])

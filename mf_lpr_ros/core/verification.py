@@ -285,9 +285,13 @@ class MatchVerifier:
 
     def _weak_reason(self, match: MatchResult) -> str:
         search = self.search
-        relative = (f" and < min_relative_confidence {search.min_relative_confidence} x place "
-                    f"similarity {match.place_similarity:.3f}"
-                    if search.min_relative_confidence > 0 else "")
+        if search.min_relative_confidence <= 0:
+            relative = ""
+        elif math.isnan(match.place_similarity):
+            relative = " (no other view of the place to measure it against)"
+        else:
+            relative = (f" and < min_relative_confidence {search.min_relative_confidence} x "
+                        f"place similarity {match.place_similarity:.3f}")
         return (f"confidence {match.confidence:.3f} < min_confidence {search.min_confidence}"
                 + relative)
 

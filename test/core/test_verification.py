@@ -128,7 +128,8 @@ def test_a_weak_match_passes_where_its_place_is_as_weakly_alike(relative, simila
     assert verdict.accepted is accepted, verdict.reason
     if not accepted:
         assert verdict.reason.startswith("confidence 0.300 < min_confidence 0.4")
-        assert ("place similarity" in verdict.reason) is (relative > 0)
+        assert ("place similarity" in verdict.reason) is (relative > 0 and similarity > 0)
+        assert ("no other view" in verdict.reason) is (relative > 0 and math.isnan(similarity))
 
 
 @pytest.mark.parametrize("min_local, local, accepted", [
