@@ -344,9 +344,11 @@ def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> None:
 
 
 def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
-                     only: np.ndarray | None = None) -> np.ndarray:
+                     only: np.ndarray | None = None, *, cached: bool = True) -> np.ndarray:
     """Occupancy rotated counter-clockwise about the sensor by each angle: (A, D, D) bool; with
     only (indices into angles_deg), by those angles alone (the set's tables are reused).
+    cached False: the set's table is made for this call alone (a set used once would take a
+    place in the cache, ~0.4 MB, and push out the search's own).
 
     Nearest-neighbour; cells whose source falls outside the window become unoccupied.
     """
@@ -354,7 +356,8 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
     # One unoccupied cell past the last: where every source outside the window reads.
     cells = np.zeros(size * size + 1, dtype=bool)
     cells[:-1] = occupancy.ravel()
-    sources = _rotation_sources(size, _angle_key(angles_deg))
+    make_sources = _rotation_sources if cached else _rotation_sources.__wrapped__
+    sources = make_sources(size, _angle_key(angles_deg))
     return np.take(cells, sources if only is None else sources[only]).reshape(-1, size, size)
 
 

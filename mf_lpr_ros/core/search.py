@@ -210,6 +210,8 @@ class MatchedFilterIndex:
         self._positions: cKDTree | None = None
         # place_similarity by reference: (the view it was measured from, the figure).
         self._place_similarity: dict[int, tuple[int, float]] = {}
+        # False while a place's similarity is measured (_rotated).
+        self._tables_kept = True
         # What became of the prefilter cache beside the map file (on demand only).
         self.prefilter_cache_status = "not used"
         self.sync()
@@ -497,12 +499,12 @@ class MatchedFilterIndex:
         """place_similarity, inside a query.
 
         The two views are aligned at the yaw between their map poses and at the yaw their
-        prefilter spectra give (both halves), the best kept: where the map's headings are off
-        (a map of turned images), its places still measure as alike as they are, and where
-        the spectra's angle is off (views farther apart), the poses' holds. Kept per
-        reference while its nearest other view stays the same (a growing map may bring a
-        nearer one). Runs inside a query: the query's turned views and footprint are put back
-        afterwards.
+        prefilter spectra give (both halves), the best kept:
+        where the map's headings are off (a map of turned images), its places still measure
+        as alike as they are, and where the spectra's angle is off (views farther apart), the
+        poses' holds. Kept per reference while its nearest other view stays the same (a
+        growing map may bring a nearer one). Runs inside a query: the query's turned views
+        and footprint are put back afterwards.
         """
         n_refs = len(self) if n_refs is None else min(n_refs, len(self))
         position = self.map.poses[reference, :2, 3]
@@ -517,21 +519,29 @@ class MatchedFilterIndex:
         if kept is not None and kept[0] == neighbour:
             return kept[1]
         occupancy = self.map.occupancy(neighbour)
-        angles = [math.degrees(planar(self.map.poses[neighbour])[2]
-                               - planar(self.map.poses[reference])[2])]
+        yaws = [math.degrees(planar(self.map.poses[neighbour])[2]
+                             - planar(self.map.poses[reference])[2])]
         if self.prefilter is not None:
             half = float(self.prefilter.angles(self._low_references(np.array([neighbour]))[0],
                                                np.array([reference]))[0])
-            angles += [half, half + 180.0]
+            yaws += [half, half + 180.0]
         query_state = self._turned_query, self._query_seen
         self._turned_query, self._query_seen = {}, self._seen(occupancy)
+        self._tables_kept = False
         try:
-            similarity = max(self._local(occupancy, reference, angle).confidence
-                             for angle in angles)
+            similarity = max(self._local(occupancy, reference, yaw).confidence for yaw in yaws)
         finally:
             self._turned_query, self._query_seen = query_state
+            self._tables_kept = True
         self._place_similarity[reference] = (neighbour, similarity)
         return similarity
+
+    def _rotated(self, image: np.ndarray, angles: np.ndarray, only: np.ndarray | None
+                 ) -> np.ndarray:
+        """rotate_occupancy, its tables kept unless this is a place's similarity being
+        measured: the local stage's angle sets are otherwise the global headings' (made once,
+        prepare_rotations), and a set for every place measured would fill the cache."""
+        return rotate_occupancy(image, angles, only, cached=self._tables_kept)
 
     def _elsewhere(self, searched: np.ndarray, reference: int) -> np.ndarray:
         """Positions in searched of the references farther than distinct_radius_m from
@@ -720,7 +730,7 @@ class MatchedFilterIndex:
             if not len(missing):
                 continue
             covered = self._query_covered(angles, missing)
-            weights.append(weighted(rotate_occupancy(occupancy, angles, missing), w, covered))
+            weights.append(weighted(self._rotated(occupancy, angles, missing), w, covered))
             turns = covered is not None and covered.ndim == 3
             footprints += [covered[k] if turns else None for k in range(len(missing))]
             keys += [float(angle) for angle in angles[missing]]
@@ -748,10 +758,10 @@ class MatchedFilterIndex:
         field-of-view wedge and the cells the query has seen turn with the sensor; the disc and
         the square window do not."""
         if self._query_seen is not None:
-            return rotate_occupancy(self._query_seen, angles, only) & self.covered_window
+            return self._rotated(self._query_seen, angles, only) & self.covered_window
         if self.covered is None or not turns_with_sensor(self.params):
             return self.covered
-        return rotate_occupancy(self.covered, angles, only) & self.covered_window
+        return self._rotated(self.covered, angles, only) & self.covered_window
 
     def _turned_and_pooled(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
         """The query's low-resolution weights turned to global_angles[headings]: (A, d, d),

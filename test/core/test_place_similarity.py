@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from mf_lpr_ros.core.descriptor import describe_points
+from mf_lpr_ros.core.descriptor import _rotation_sources, describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.search import MatchedFilterIndex
@@ -51,15 +51,18 @@ def test_views_along_a_route_are_alike_and_a_lone_place_has_no_yardstick(route_i
 
 
 def test_a_place_measures_as_alike_when_the_maps_headings_are_wrong(world, route_index):
-    """The yaw between two views is read off the views: a map whose headings are off by up to
-    half a turn measures its places as the right map does (aligned at the map's headings, the
-    views would barely overlap)."""
+    """The yaw between two views is read off the views too: a map whose headings are off by
+    up to half a turn measures its places as the right map does (aligned at the map's headings
+    alone, the views would barely overlap). The views are turned only by the search's own
+    rotation tables: measuring at arbitrary angles makes no new one."""
     errors = np.random.default_rng(7).uniform(np.radians(30), np.radians(170),
                                               len(ROUTE) + 1)
     wrong = MatchedFilterIndex(_map(world, errors), SearchParams())
+    tables_made = _rotation_sources.cache_info().misses
     for view in range(len(ROUTE)):
         assert wrong.place_similarity(view) == pytest.approx(
             route_index.place_similarity(view), abs=0.03)
+    assert _rotation_sources.cache_info().misses == tables_made
 
 
 def test_a_weak_match_carries_its_places_similarity_and_nothing_else_changes(world):
