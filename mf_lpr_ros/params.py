@@ -154,8 +154,10 @@ class SearchParams:
         mostly matches worse (KITTI 00 every frame: wrong matches under 0.4 reach at most 0.80
         of their places' similarity, 0.64 at the 95th percentile; docs/RESULTS.md, session
         31). Not a guard alone (on a map of one place, the HKU Avia keyframes, wrong matches
-        reach it too): distinctiveness and odometry consistency still apply. 0 = off
-        (min_confidence alone).
+        reach it too): distinctiveness and odometry consistency still apply. 0.95, not 0.9:
+        both pass the tuning rule, but at 0.9 a run of off-map queries matched 265 m away on
+        the 8 m tuning pair stays out by 0.01-0.09 of the ratio (0.81-0.89), at 0.95 by
+        0.06-0.14. 0 = off (min_confidence alone).
     chunk_size: references processed per block in the global stage (memory vs. speed).
     prefilter_top_k: the global stage correlates only the k references that a rotation- and
         translation-invariant polar-spectrum ranking puts first (mf_lpr_ros/core/prefilter.py);
@@ -311,7 +313,7 @@ class SearchParams:
     local_rotation_step_deg: float = 2.0
     score_normalisation: str = "cosine"
     min_confidence: float = 0.4
-    min_relative_confidence: float = 0.9
+    min_relative_confidence: float = 0.95
     chunk_size: int = 256
     prefilter_top_k: int = 64
     prefilter_rescore_k: int = 0
