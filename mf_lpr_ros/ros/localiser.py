@@ -430,15 +430,20 @@ class LocaliserLogic(LidarNodeMixin):
         pending.answer.set_result(answer)
 
     def _publish_diagnostics(self) -> None:
+        localiser = self.localiser
+        if localiser is None:
+            # A tick already due when cleanup freed the search (the executor runs it after the
+            # timer is destroyed): nothing is left to report.
+            return
         counters = dict(self.counters)
         if self.latencies_ms:
             counters["latency_median_ms"] = round(float(np.median(self.latencies_ms)), 2)
-        counters["references"] = self.localiser.reference_count
-        counters["references_rejected"] = self.localiser.rejected_references
+        counters["references"] = localiser.reference_count
+        counters["references_rejected"] = localiser.rejected_references
         warn = "; ".join(text for text in (
             "scans dropped: search slower than the sensor" if self.counters["scans_dropped"]
             else "",
-            self.localiser.last_reference_error) if text)
+            localiser.last_reference_error) if text)
         self.diagnostics_pub.publish(diagnostics_message(
             self.get_clock().now().to_msg(), self.get_name(), counters, self.last, warn))
 

@@ -75,6 +75,9 @@ def test_lifecycle_transitions_load_listen_pause_and_free(ros_graph, synthetic_m
 
     assert lifecycle.transition(Transition.TRANSITION_CLEANUP)
     assert lifecycle.state == "unconfigured" and node.localiser is None
+    # A diagnostics tick already due when cleanup ran: it finds nothing to report (it used to
+    # raise in the executor's thread, which then stopped spinning).
+    node._publish_diagnostics()
     assert lifecycle.transition(Transition.TRANSITION_CONFIGURE)   # and again from scratch
     assert node.localiser.reference_count == 45
 
