@@ -499,12 +499,12 @@ class MatchedFilterIndex:
         """place_similarity, inside a query.
 
         The two views are aligned at the yaw between their map poses and at the yaw their
-        prefilter spectra give (both halves), the best kept:
-        where the map's headings are off (a map of turned images), its places still measure
-        as alike as they are, and where the spectra's angle is off (views farther apart), the
-        poses' holds. Kept per reference while its nearest other view stays the same (a
-        growing map may bring a nearer one). Runs inside a query: the query's turned views
-        and footprint are put back afterwards.
+        prefilter spectra give (both halves), the best kept: where the map's headings are off
+        (a map of turned images), its places still measure as alike as they are, and where
+        the spectra's angle is off (views farther apart), the poses' holds. Kept per
+        reference while its nearest other view stays the same (a growing map may bring a
+        nearer one). Runs inside a query: the query's turned views and footprint are put back
+        afterwards.
         """
         n_refs = len(self) if n_refs is None else min(n_refs, len(self))
         position = self.map.poses[reference, :2, 3]
