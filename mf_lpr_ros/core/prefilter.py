@@ -153,7 +153,14 @@ class PolarSpectrumIndex(NumpyArrays):
         """Degrees in [0, 180) by which the query image is best turned onto each reference (its
         spectrum's best circular shift, refined between shifts by a parabola through it and its
         two neighbours): the yaw between them modulo half a turn."""
-        query = self._query(image)
+        return self._angles_of(self._query(image), references)
+
+    def angles_between(self, reference: int, references: np.ndarray) -> np.ndarray:
+        """angles, with a stored reference in the query's place: from its stored features, so
+        the last query's stay cached (a search asks this of the map's own views mid-query)."""
+        return self._angles_of(self._bank[:, reference].conj()[:, :, None], references)
+
+    def _angles_of(self, query, references: np.ndarray) -> np.ndarray:
         correlation = self._to_host(self._over_angles(self._bank[:, self._index(references)],
                                                       query))
         return circular_peaks(correlation) * (180.0 / self.n_angles) % 180.0

@@ -47,6 +47,25 @@ def test_rotated_and_shifted_copy_ranks_first():
     assert list(index.top(low(places[2]), 4, stop=10)) == list(np.argsort(-scores)[:4])
 
 
+def test_the_angle_between_stored_references_keeps_the_querys_features(monkeypatch):
+    # A search measures its map's own views mid-query (MatchedFilterIndex.place_similarity):
+    # the same angles as from the view's image, and the query's features stay cached.
+    rng = np.random.default_rng(4)
+    places = [low(blobs(rng)) for _ in range(8)]
+    index = PolarSpectrumIndex(60)
+    index.append(np.stack(places))
+    others = np.array([0, 3, 6])
+    query = low(np.roll(rotate_occupancy(blobs(rng), np.array([40.0]))[0], 2, 0))
+    from_image = index.angles(places[5], others)
+    index.angles(query, others)
+    computed = []
+    features = index.features
+    monkeypatch.setattr(index, "features", lambda images: computed.append(1) or features(images))
+    np.testing.assert_allclose(index.angles_between(5, others), from_image, atol=1e-3)
+    index.angles(query, others)
+    assert not computed
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 37.0, 151.0, 250.0])
 def test_the_prefilter_angle_is_the_turn_back_modulo_half_a_turn(turn_deg):
     """A view turned by turn_deg is turned back onto its place by -turn_deg: the angle of

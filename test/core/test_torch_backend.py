@@ -66,9 +66,12 @@ def test_prefilter_matches_numpy():
                                atol=1e-5)
     # Angles between bins come from the correlations' values: equal to float32 rounding,
     # modulo half a turn.
-    difference = (gpu.angles(images[4], np.array([4, 1]))
-                  - cpu.angles(images[4], np.array([4, 1])) + 90.0) % 180.0 - 90.0
-    np.testing.assert_allclose(difference, 0.0, atol=1e-3)
+    for gpu_angles, cpu_angles in ((gpu.angles(images[4], np.array([4, 1])),
+                                    cpu.angles(images[4], np.array([4, 1]))),
+                                   (gpu.angles_between(4, np.array([0, 1])),
+                                    cpu.angles_between(4, np.array([0, 1])))):
+        difference = (gpu_angles - cpu_angles + 90.0) % 180.0 - 90.0
+        np.testing.assert_allclose(difference, 0.0, atol=1e-3)
 
 
 def test_search_results_match_numpy(world, tmp_path):
