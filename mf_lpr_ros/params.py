@@ -283,6 +283,14 @@ class SearchParams:
         (docs/RESULTS.md, "Default changes", sessions 15 and 21); an earlier re-ranking that
         also let a less shifted finalist of another place win, tuned on KITTI 00 alone, lost
         5.5 points on held-out KITTI 02 and was removed.
+    map_headings: whether the map's reference headings are known. "known" (default): the
+        poses' yaws say how each reference's view is turned. "unknown": they do not (views
+        turned by unknown angles, as in BEVPlace's rotated KITTI copies, or references
+        tagged with a position alone): the nearest-place re-ranking then reports the finalist
+        the query is nearest to by its own alignment, when the two alignments put the
+        references as far apart as the map does (within rerank_agreement_m), and a place's
+        similarity is measured at its views' own angles only. Poses against such a map carry
+        the references' unknown turns; the evaluation scores retrieval only there.
     query_footprint: the cells of the query that count. "window": the map's footprint (the
         disc or square, a field-of-view wedge), its unoccupied cells free space (w).
         "observed": only the cells the query has seen (in each direction, up to its farthest
@@ -336,6 +344,7 @@ class SearchParams:
     consistency_vouch: bool = True
     rerank_margin: float = 0.9
     rerank_agreement_m: float = 2.0
+    map_headings: str = "known"
     query_footprint: str = "auto"
     global_yaw_window_deg: float = 5.0
 
@@ -397,6 +406,8 @@ class SearchParams:
                           self.query_footprint)
         require_parameter(self.rerank_agreement_m > 0, "rerank_agreement_m", "> 0",
                  self.rerank_agreement_m)
+        require_parameter(self.map_headings in ("known", "unknown"), "map_headings",
+                          "'known' or 'unknown'", self.map_headings)
         require_parameter(0.0 <= self.global_yaw_window_deg < 90.0, "global_yaw_window_deg",
                           "in [0, 90)", self.global_yaw_window_deg)
         require_parameter(self.consistency_min_separation_m >= 0, "consistency_min_separation_m",

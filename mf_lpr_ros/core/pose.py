@@ -229,6 +229,14 @@ def relative_planar(origin: np.ndarray, target: np.ndarray) -> np.ndarray:
                      wrap_angle(target[..., 2] - origin[..., 2])], axis=-1)
 
 
+def reference_distance(first: np.ndarray, second: np.ndarray) -> float:
+    """How far apart two references are, as one query's alignments on both put them: first and
+    second are the query's planar pose in each reference's frame (shift x, shift y, rotation,
+    as alignment_from_poses gives them). Neither reference's heading enters it."""
+    between = compose_planar(first, relative_planar(second, np.zeros(3)))
+    return float(np.hypot(between[0], between[1]))
+
+
 def planar_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Translation error (m) and absolute yaw error (degrees) of planar poses (..., 3); floats
     for single poses."""

@@ -31,6 +31,7 @@ from mf_lpr_ros.core.pose import (
     alignment_from_poses,
     planar,
     query_pose_from_alignment,
+    reference_distance,
     rotate_covariance,
 )
 from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
@@ -437,6 +438,8 @@ class MatchedFilterIndex:
         """
         if self.search.rerank_margin <= 0:
             return None
+        if self.search.map_headings == "unknown":
+            return self._nearest_by_distances(match, peaks, ranked)
         offsets = self.map.poses[:n_refs, :2, 3] - match.pose[:2]
         nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
         if nearest == peaks[0].reference:
@@ -451,6 +454,30 @@ class MatchedFilterIndex:
         if np.hypot(*(confirmed.pose[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
             return None
         return candidate
+
+    def _nearest_by_distances(self, match: MatchResult, peaks: list["_LocalPeak"],
+                              ranked: np.ndarray) -> "_LocalPeak | None":
+        """_nearest_place where the map's headings are unknown (SearchParams.map_headings):
+        the finalist the query is nearest to by its own alignment, when it scores within
+        rerank_margin of the best and the two alignments put the two references as far apart
+        as their map positions are (within rerank_agreement_m). A position in the map frame
+        needs a reference's heading; a distance does not."""
+        floor = (1.0 - self.search.rerank_margin) * peaks[0].score
+        origin = self.map.poses[match.reference_index, :2, 3]
+        nearest, chosen = float(np.hypot(*match.shift_m)), None
+        for peak in peaks[1:]:
+            if peak.score < floor:
+                continue
+            other = self._result(peak, ranked)
+            distance = float(np.hypot(*other.shift_m))
+            if distance >= nearest:
+                continue
+            apart = float(np.hypot(*(self.map.poses[peak.reference, :2, 3] - origin)))
+            aligned_apart = reference_distance(np.append(match.shift_m, match.rotation_rad),
+                                               np.append(other.shift_m, other.rotation_rad))
+            if abs(aligned_apart - apart) <= self.search.rerank_agreement_m:
+                nearest, chosen = distance, peak
+        return chosen
 
     def _reported_at(self, match: MatchResult, reference: int, ranked: np.ndarray
                      ) -> MatchResult:
@@ -501,10 +528,11 @@ class MatchedFilterIndex:
         The two views are aligned at the yaw between their map poses and at the yaw their
         prefilter spectra give (both halves), the best kept: where the map's headings are off
         (a map of turned images), its places still measure as alike as they are, and where
-        the spectra's angle is off (views farther apart), the poses' holds. Kept per
-        reference while its nearest other view stays the same (a growing map may bring a
-        nearer one). Runs inside a query: the query's turned views and footprint are put back
-        afterwards.
+        the spectra's angle is off (views farther apart), the poses' holds. A map whose
+        headings are unknown (SearchParams.map_headings) offers the spectra's angle alone,
+        and no yardstick (NaN) without a prefilter. Kept per reference while its nearest
+        other view stays the same (a growing map may bring a nearer one). Runs inside a
+        query: the query's turned views and footprint are put back afterwards.
         """
         n_refs = len(self) if n_refs is None else min(n_refs, len(self))
         position = self.map.poses[reference, :2, 3]
@@ -519,12 +547,14 @@ class MatchedFilterIndex:
         if kept is not None and kept[0] == neighbour:
             return kept[1]
         occupancy = self.map.occupancy(neighbour)
-        yaws = [math.degrees(planar(self.map.poses[neighbour])[2]
-                             - planar(self.map.poses[reference])[2])]
+        yaws = [] if self.search.map_headings == "unknown" else [
+            math.degrees(planar(self.map.poses[neighbour])[2]
+                         - planar(self.map.poses[reference])[2])]
         if self.prefilter is not None:
-            half = float(self.prefilter.angles(self._low_references(np.array([neighbour]))[0],
-                                               np.array([reference]))[0])
+            half = float(self.prefilter.angles_between(neighbour, np.array([reference]))[0])
             yaws += [half, half + 180.0]
+        if not yaws:
+            return math.nan
         query_state = self._turned_query, self._query_seen
         self._turned_query, self._query_seen = {}, self._seen(occupancy)
         self._tables_kept = False

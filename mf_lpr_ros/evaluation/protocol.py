@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -52,7 +52,7 @@ class Protocol:
     # False where each image is turned by its own unknown yaw while the poses are the
     # unturned scans' (BEVPlace's rotated copies): a retrieval can be scored there, an estimated
     # pose cannot (it carries the reference image's unknown turn), so the summary's pose-based
-    # figures are NaN (metrics.POSE_FIGURES).
+    # figures are NaN (metrics.POSE_FIGURES), and the search runs with map_headings "unknown".
     headings_known: bool = True
 
     def __post_init__(self) -> None:
@@ -261,6 +261,9 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     selection = select(reference, protocol, config.spacing_m, query=query,
                        query_stamps=query_stamps)
     config, profile = resolve_for_sequence(config, reference)
+    if not protocol.headings_known:
+        # The search is told what the protocol knows: the map's yaws are not its views'.
+        config = replace(config, search=replace(config.search, map_headings="unknown"))
     runner = make_method(method, config)
     records = run_protocol(runner, reference, selection, query=query, progress=progress)
     summary = summarise(records, protocol.tolerance_m, len(selection.references),

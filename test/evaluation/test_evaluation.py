@@ -5,10 +5,12 @@ import importlib.util
 import numpy as np
 import pytest
 
+from mf_lpr_ros.config import preset
 from mf_lpr_ros.datasets import Sequence
+from mf_lpr_ros.evaluation import protocol as protocol_module
 from mf_lpr_ros.evaluation.benchmarks import SUITES
 from mf_lpr_ros.evaluation.metrics import POSE_FIGURES, QueryRecord, summarise
-from mf_lpr_ros.evaluation.protocol import Protocol, select
+from mf_lpr_ros.evaluation.protocol import Protocol, evaluate_pair, select
 
 
 class Line(Sequence):
@@ -104,6 +106,22 @@ def test_where_headings_are_unknown_retrieval_is_scored_and_poses_are_not():
     for figure in ("recall_at_1", "recall_at_5", "closures_published", "f1_max"):
         assert unscored[figure] == scored[figure], figure
     assert unscored["recall_at_1"] == 0.5 and unscored["closures_published"] == 1
+
+
+def test_where_headings_are_unknown_the_search_is_told(monkeypatch):
+    # The protocol's knowledge reaches the search (SearchParams.map_headings), and only there.
+    told = []
+
+    def method_of(name, config):
+        told.append(config.search.map_headings)
+        raise LookupError("stop before searching")
+
+    monkeypatch.setattr(protocol_module, "make_method", method_of)
+    for headings_known in (True, False):
+        with pytest.raises(LookupError):
+            evaluate_pair(Line(10), preset("kitti"),
+                          Protocol(3.0, exclude_recent_frames=2, headings_known=headings_known))
+    assert told == ["known", "unknown"]
 
 
 def test_only_the_rotated_copies_leave_their_poses_unscored():
