@@ -261,13 +261,15 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     selection = select(reference, protocol, config.spacing_m, query=query,
                        query_stamps=query_stamps)
     config, profile = resolve_for_sequence(config, reference)
-    if not protocol.headings_known:
-        # The search is told what the protocol knows: the map's yaws are not its views'.
+    # Either side may know that the map's yaws are not its views': the protocol (a dataset's
+    # turned copy) tells the search, a configuration saying so leaves the poses unscored.
+    headings_known = protocol.headings_known and config.search.map_headings == "known"
+    if not headings_known:
         config = replace(config, search=replace(config.search, map_headings="unknown"))
     runner = make_method(method, config)
     records = run_protocol(runner, reference, selection, query=query, progress=progress)
     summary = summarise(records, protocol.tolerance_m, len(selection.references),
-                        poses_scored=protocol.headings_known)
+                        poses_scored=headings_known)
     if profile is not None:
         summary["auto"] = map_metadata(profile, config.descriptor)
     return PairResult(runner.name, summary, records)

@@ -1,6 +1,8 @@
 """The evaluation protocol's selection and the metrics, on small hand-made sequences/records."""
 
 import importlib.util
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -108,20 +110,28 @@ def test_where_headings_are_unknown_retrieval_is_scored_and_poses_are_not():
     assert unscored["recall_at_1"] == 0.5 and unscored["closures_published"] == 1
 
 
-def test_where_headings_are_unknown_the_search_is_told(monkeypatch):
-    # The protocol's knowledge reaches the search (SearchParams.map_headings), and only there.
+def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(monkeypatch):
+    # One fact, known to either side: a protocol's turned copies tell the search
+    # (SearchParams.map_headings), and a search told so leaves the poses unscored.
     told = []
 
     def method_of(name, config):
         told.append(config.search.map_headings)
-        raise LookupError("stop before searching")
+        return SimpleNamespace(name=name)
 
     monkeypatch.setattr(protocol_module, "make_method", method_of)
-    for headings_known in (True, False):
-        with pytest.raises(LookupError):
-            evaluate_pair(Line(10), preset("kitti"),
-                          Protocol(3.0, exclude_recent_frames=2, headings_known=headings_known))
-    assert told == ["known", "unknown"]
+    monkeypatch.setattr(protocol_module, "run_protocol", lambda *args, **kwargs: [])
+    monkeypatch.setattr(protocol_module, "summarise",
+                        lambda records, tolerance_m, n_references, poses_scored:
+                        {"poses_scored": poses_scored})
+    kitti = preset("kitti")
+    told_unknown = replace(kitti, search=replace(kitti.search, map_headings="unknown"))
+    for config, headings_known, expected in ((kitti, True, ("known", True)),
+                                             (kitti, False, ("unknown", False)),
+                                             (told_unknown, True, ("unknown", False))):
+        result = evaluate_pair(Line(10), config, Protocol(3.0, exclude_recent_frames=2,
+                                                          headings_known=headings_known))
+        assert (told[-1], result.summary["poses_scored"]) == expected
 
 
 def test_only_the_rotated_copies_leave_their_poses_unscored():
