@@ -290,7 +290,8 @@ class SearchParams:
         the query is nearest to by its own alignment, when the two alignments put the
         references as far apart as the map does (within rerank_agreement_m), and a place's
         similarity is measured at its views' own angles only. Poses against such a map carry
-        the references' unknown turns; the evaluation scores retrieval only there.
+        the references' unknown turns: the evaluation scores retrieval only there, and the
+        localiser node, which publishes poses, refuses it.
     query_footprint: the cells of the query that count. "window": the map's footprint (the
         disc or square, a field-of-view wedge), its unoccupied cells free space (w).
         "observed": only the cells the query has seen (in each direction, up to its farthest

@@ -188,6 +188,12 @@ class LocaliserSettings:
                                  "the map grows from the first scan on, so name a preset")
         if mode == "relocalise" and not values["map_path"]:
             raise ParameterFault("parameter map_path must name a map file in relocalise mode")
+        if config.search.map_headings != "known":
+            raise ParameterFault("parameter search.map_headings must be 'known' in the "
+                                 "localiser: its poses and closures are the references' poses "
+                                 "composed with the alignments, which need the map's headings "
+                                 "('unknown' is for retrieval-only evaluation: mf-lpr evaluate, "
+                                 "suite)")
         publish_mode = values["publish_mode"]
         if publish_mode == "auto":
             publish_mode = "continuous" if mode == "loop_closure" else "on_request"

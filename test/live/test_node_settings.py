@@ -1,6 +1,8 @@
 """The nodes' settings, ROS-free: each parameter's check, and every combination refused by name
 before any map is opened."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -55,6 +57,16 @@ def test_localiser_defaults_resolve_publish_mode_by_mode():
 def test_localiser_combinations_are_refused_by_name(overrides, named):
     with pytest.raises(ParameterFault, match=named):
         _localiser(**overrides)
+
+
+def test_a_map_of_unknown_headings_is_refused_where_poses_are_published():
+    kitti = preset("kitti")
+    unknown = dataclasses.replace(kitti, search=dataclasses.replace(kitti.search,
+                                                                    map_headings="unknown"))
+    for mode in ("relocalise", "loop_closure"):
+        with pytest.raises(ParameterFault, match="search.map_headings must be 'known'"):
+            _localiser(unknown, mode=mode, pose_source="odom")
+    assert _localiser(kitti).config.search.map_headings == "known"
 
 
 def test_auto_is_refused_in_loop_closure_mode_before_any_map():
