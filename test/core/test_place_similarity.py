@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
+from helpers import turned_view_map
 
 from mf_lpr_ros.core.descriptor import _rotation_sources, describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.sim.synthetic import scan_world
@@ -21,15 +21,12 @@ ROUTE = [(2.0 * step, 0.0, 0.3) for step in range(6)]
 LONE = (-25.0, -10.0, 2.5)
 
 
-def _map(world, heading_errors: np.ndarray | None = None) -> ReferenceMap:
-    """The route's and the lone place's views; with heading_errors (radians, one a view), the
-    map's poses carry those wrong headings while the views are the true scans."""
+def _map(world) -> ReferenceMap:
+    """The route's and the lone place's views."""
     rng = np.random.default_rng(0)
     reference_map = ReferenceMap(PARAMS)
     for index, (x, y, yaw) in enumerate(ROUTE + [LONE]):
         points, pose = scan_world(world, x, y, yaw, rng)
-        if heading_errors is not None:
-            pose = pose_matrix(pose[:3, 3], quaternion_from_yaw(yaw + heading_errors[index]))
         reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=index),
                              pose, float(index), index)
     return reference_map
@@ -57,7 +54,8 @@ def test_a_place_measures_as_alike_when_the_maps_headings_are_wrong(world, route
     rotation tables: measuring at arbitrary angles makes no new one."""
     errors = np.random.default_rng(7).uniform(np.radians(30), np.radians(170),
                                               len(ROUTE) + 1)
-    wrong = MatchedFilterIndex(_map(world, errors), SearchParams())
+    wrong = MatchedFilterIndex(turned_view_map(_map(world), [
+        (view, turn, 0.0) for view, turn in enumerate(errors)]), SearchParams())
     tables_made = _rotation_sources.cache_info().misses
     for view in range(len(ROUTE)):
         assert wrong.place_similarity(view) == pytest.approx(

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from helpers import turned_view_map
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, rotate_occupancy
@@ -368,21 +369,10 @@ def test_nearest_place_reranking_reports_the_nearest_reference():
     assert not_nearest(0.0) >= 3
 
 
-def _with_wrong_headings(street: ReferenceMap, seed: int, copies_at_y: float | None = None
-                         ) -> ReferenceMap:
-    """The street's views under poses whose headings are off by 30-170 degrees each: a map
-    whose yaws are not its views' (BEVPlace's rotated copies, references tagged with a position
-    alone). With copies_at_y, a look-alike street follows: the same views again, that far off."""
-    errors = np.random.default_rng(seed).uniform(np.radians(30), np.radians(170), 2 * len(street))
-    wrong = ReferenceMap(PARAMS)
-    views = range(len(street)) if copies_at_y is None else list(range(len(street))) * 2
-    for k, i in enumerate(views):
-        pose = street.poses[i].copy()
-        turn = planar(pose)[2] + errors[k]
-        pose[:2, :2] = [[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]
-        pose[1, 3] += 0.0 if k < len(street) else copies_at_y
-        wrong.append(street.occupancy(i), pose, float(k), k)
-    return wrong
+def _heading_errors(count: int) -> np.ndarray:
+    """Headings off by 30-170 degrees each: a map whose yaws are not its views' (BEVPlace's
+    rotated copies, references tagged with a position alone)."""
+    return np.random.default_rng(3).uniform(np.radians(30), np.radians(170), count)
 
 
 def test_two_alignments_of_one_query_give_the_distance_between_their_references():
@@ -405,7 +395,8 @@ def test_a_map_of_unknown_headings_reports_a_nearer_view_by_distances():
     # finalist the query is nearer to when the two alignments put the two references as far
     # apart as the map does. Never a view farther than the best-scoring one.
     street, xs = _street()
-    wrong = _with_wrong_headings(street, seed=3)
+    wrong = turned_view_map(street, [(view, turn, 0.0) for view, turn in
+                                     enumerate(_heading_errors(len(street)))])
     off = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", rerank_margin=0.0))
     unknown = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown"))
     nearer = 0
@@ -425,7 +416,9 @@ def test_a_nearer_view_of_a_look_alike_place_is_not_reported_when_headings_are_u
     # references tell the two streets apart; the report stays on the best one's street.
     street, xs = _street()
     n_views = len(street)
-    doubled = _with_wrong_headings(street, seed=3, copies_at_y=500.0)
+    turns = _heading_errors(2 * n_views)
+    doubled = turned_view_map(street, [(k % n_views, turn, 0.0 if k < n_views else 500.0)
+                                       for k, turn in enumerate(turns)])
     off = MatchedFilterIndex(doubled, SearchParams(map_headings="unknown", rerank_margin=0.0,
                                                    top_n=4))
     unknown = MatchedFilterIndex(doubled, SearchParams(map_headings="unknown", top_n=4))
