@@ -212,12 +212,13 @@ class SearchParams:
         GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
         PyTorch is installed and sees a CUDA device, else numpy.
     threads: threads that share one query's work (numpy backend; torch has its own): the
-        global stage's per-heading products (each too small for BLAS's own threads), its large
-        products split by columns, and the local stage's finalists; numpy and scipy's FFTs
-        release the GIL. While a search runs on several threads BLAS is held to one thread in
-        the process (core/workers.py says why). 2 on 2 cores: 1,500 generated references 12.4
-        -> 11.1 ms a query (benchmarks/bench_search.py; docs/RESULTS.md, session 18). 1 keeps
-        the search on the calling thread (a process running several searches at once).
+        global stage's candidate pairs, chunk by chunk, and its large products split by
+        columns; numpy and scipy's FFTs release the GIL. While a search runs on several
+        threads BLAS is held to one thread in the process (core/workers.py says why). 2 on 2
+        cores: 1,500 generated references 12.4 -> 11.1 ms a query (benchmarks/bench_search.py;
+        docs/RESULTS.md, session 18); since the pairs are correlated by FFT (session 33) 1 and
+        2 take the same time there. 1 keeps the search on the calling thread (a process
+        running several searches at once).
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose

@@ -8,6 +8,7 @@ overrides them (backends.torch_backend.TorchArrays) instead of copying the banks
 from __future__ import annotations
 
 import numpy as np
+from scipy import fft as sp_fft
 
 from mf_lpr_ros.core.workers import Workers
 
@@ -56,9 +57,18 @@ class NumpyArrays:
         return self.workers.matmul(left, right)
 
     @staticmethod
-    def _multiply_into(left, right, out) -> None:
-        """out[...] = left @ right without a temporary (out may be a strided view)."""
-        np.matmul(left, right, out=out)
+    def _dft(values: np.ndarray, length: int) -> np.ndarray:
+        """The DFT of values along their last axis, zero-padded to length."""
+        return sp_fft.fft(values, n=length, axis=-1)
+
+    @staticmethod
+    def _contiguous(values: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(values)
+
+    @staticmethod
+    def _interleaved(values: np.ndarray) -> np.ndarray:
+        """complex64 (..., K) as float32 (..., 2K): [Re, Im] of each element in turn."""
+        return np.ascontiguousarray(values).view(np.float32)
 
     @staticmethod
     def _nbytes(array) -> int:

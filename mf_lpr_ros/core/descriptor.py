@@ -356,9 +356,14 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
     # One unoccupied cell past the last: where every source outside the window reads.
     cells = np.zeros(size * size + 1, dtype=bool)
     cells[:-1] = occupancy.ravel()
-    make_sources = _rotation_sources if cached else _rotation_sources.__wrapped__
-    sources = make_sources(size, _angle_key(angles_deg))
-    return np.take(cells, sources if only is None else sources[only]).reshape(-1, size, size)
+    if cached:
+        sources = _rotation_sources(size, _angle_key(angles_deg))
+        sources = sources if only is None else sources[only]
+    else:
+        # Made for this call alone: only the angles it turns to (~0.4 ms an angle).
+        wanted = np.atleast_1d(angles_deg) if only is None else np.atleast_1d(angles_deg)[only]
+        sources = _rotation_sources.__wrapped__(size, _angle_key(wanted))
+    return np.take(cells, sources).reshape(-1, size, size)
 
 
 def auto_voxel_size(point_clouds: list[np.ndarray]) -> float:

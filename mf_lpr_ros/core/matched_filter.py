@@ -10,12 +10,11 @@ SpectralBank is the many-references engine: it transforms each reference once al
 stay spatial), so that one query batch against a block of references is two dense matrix
 products per block -- a complex one holding a direct correlation along y (the query side is
 expanded into its row shifts), then a real inverse DFT restricted to the shift window. Both
-run at BLAS speed and only the window is ever computed.
+run at BLAS speed and only the window is ever computed. A search that pairs each reference
+with a few queries of its own correlates pair by pair instead, from 2-D spectra.
 """
 
 from __future__ import annotations
-
-from typing import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -24,24 +23,28 @@ from scipy import fft as sp_fft
 from mf_lpr_ros.core.array_ops import NumpyArrays
 from mf_lpr_ros.core.workers import Workers
 
+# Pairs correlated at once by _allowed_scores: their spectra stay in a core's cache from product
+# to inverse (~0.6 MB at the defaults).
+_PAIRS_PER_CHUNK = 32
+
 
 class PreparedQueries:
-    """A batch of A query images ready to correlate: the windows (K, A, 2S+1, H) of their
-    conjugated row spectra zero-padded by the shift window on both sides of y (a view: window t
-    of every row, t reversed so that di ascends). The operator that correlates every
-    query at once (SpectralBank.operator) is built the first time a search needs it; a search
-    that pairs each reference with a few queries builds one query's operator at a time."""
+    """A batch of A query images (A, H, W) to correlate. Each search builds what it needs from
+    them once: the operator that correlates every query at once (SpectralBank.operator), or
+    their 2-D spectra, for a search that scores pairs of a query and a reference
+    (SpectralBank._allowed_scores)."""
 
-    def __init__(self, windows) -> None:
-        self.windows = windows
-        self.n_queries = windows.shape[1]
+    def __init__(self, images) -> None:
+        self.images = images
+        self.n_queries = len(images)
         self.operator = None
+        self.plane_spectra = None
 
 
 class AllowedScores:
     """The scores of the (reference, query) pairs a search allowed: pair p is query queries[p]
     against the reference at position positions[p] of the subset searched, its scores
-    scores[:, :, p] (2S+1 [dj], 2S+1 [di])."""
+    scores[p] (2S+1 [di], 2S+1 [dj])."""
 
     def __init__(self, queries: np.ndarray, positions: np.ndarray, scores) -> None:
         self.queries, self.positions, self.scores = queries, positions, scores
@@ -122,12 +125,14 @@ class SpectralBank(_ReferenceImages):
         self.n_shifts = 2 * max_shift + 1
         self.fft_length = width + max_shift
         self.n_freqs = self.fft_length // 2 + 1
+        # Pairs are correlated along y by DFTs this long: the shortest whose circular
+        # correlation is the linear one within the shift window.
+        self.column_length = height + max_shift
         self._start_empty(capacity)
         self._inverse = _windowed_inverse_dft(self.fft_length, self.n_freqs, max_shift)
+        self._along_y = _windowed_column_inverse(self.column_length, max_shift)
         self._operator = np.empty(0, dtype=np.complex64)
         self.workers = workers or Workers()
-        # One buffer per worker thread of _allowed_scores.
-        self._one_query_operators = [np.empty(0, dtype=np.complex64)] * self.workers.threads
 
     def _spectra(self, images: np.ndarray) -> np.ndarray:
         """(n, K, H) row spectra of images (n, H, W)."""
@@ -147,15 +152,7 @@ class SpectralBank(_ReferenceImages):
 
     def prepare_queries(self, queries: np.ndarray) -> PreparedQueries:
         """A batch of query images (A, H, W) ready for the searches below."""
-        queries = np.asarray(queries, dtype=np.float32)
-        height, shift = self.height, self.max_shift
-        spectra = sp_fft.rfft(queries, n=self.fft_length, axis=2).transpose(2, 0, 1)
-        rows = np.zeros((self.n_freqs, len(queries), height + 2 * shift), dtype=np.complex64)
-        # Conjugated once here: each operator is then a plain copy of its windows (a conjugating
-        # copy of the strided windows takes ~2x as long).
-        np.conjugate(spectra, out=rows[:, :, shift: shift + height])
-        # windows[k, a, t, i] = rows[k, a, t + i]; di = shift - t, so reverse t.
-        return PreparedQueries(sliding_window_view(rows, height, axis=2)[:, :, ::-1])
+        return PreparedQueries(self._from_host(np.asarray(queries, dtype=np.float32)))
 
     def operator(self, prepared: PreparedQueries) -> np.ndarray:
         """The operator (K, A (2S+1), H) of every query in prepared, built once.
@@ -167,25 +164,25 @@ class SpectralBank(_ReferenceImages):
         """
         if prepared.operator is None:
             shape = self.reserve_operator(prepared.n_queries)
-            prepared.operator = self._expand(prepared.windows, self._operator_buffer(shape))
+            prepared.operator = self._expand(self._windows(prepared.images),
+                                             self._operator_buffer(shape))
         return prepared.operator
 
-    def _query_operator(self, prepared: PreparedQueries, query: int, worker: int = 0
-                        ) -> np.ndarray:
-        """The operator of one query of prepared (K, 2S+1, H), in a buffer the worker reuses for
-        every query: small enough to stay in cache between being built and being used."""
-        return self._expand(prepared.windows[:, query: query + 1],
-                            self._one_query_buffer(worker))
+    def _windows(self, images: np.ndarray) -> np.ndarray:
+        """The windows (K, A, 2S+1, H) of the conjugated row spectra of images (A, H, W),
+        zero-padded by the shift window on both sides of y: a view, window t of every row,
+        t reversed so that di ascends."""
+        height, shift = self.height, self.max_shift
+        spectra = sp_fft.rfft(images, n=self.fft_length, axis=2).transpose(2, 0, 1)
+        rows = np.zeros((self.n_freqs, len(images), height + 2 * shift), dtype=np.complex64)
+        # Conjugated once here: the operator is then a plain copy of its windows (a conjugating
+        # copy of the strided windows takes ~2x as long).
+        np.conjugate(spectra, out=rows[:, :, shift: shift + height])
+        # windows[k, a, t, i] = rows[k, a, t + i]; di = shift - t, so reverse t.
+        return sliding_window_view(rows, height, axis=2)[:, :, ::-1]
 
     def _operator_buffer(self, shape: tuple[int, ...]) -> np.ndarray:
         return self._operator.reshape(shape)
-
-    def _one_query_buffer(self, worker: int) -> np.ndarray:
-        # Called for every heading of every query: a tuple comparison, not np.prod (~17 us).
-        shape = (self.n_freqs, 1, self.n_shifts, self.height)
-        if self._one_query_operators[worker].shape != shape:
-            self._one_query_operators[worker] = np.empty(shape, dtype=np.complex64)
-        return self._one_query_operators[worker]
 
     def _expand(self, windows: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The operator of row windows (K, A, 2S+1, H), copied into out (same shape)."""
@@ -222,10 +219,6 @@ class SpectralBank(_ReferenceImages):
         width = int(np.prod(spectra.shape[1:]))
         return self._product(self._inverse,
                              self._real_parts(spectra).reshape(2 * self.n_freqs, width))
-
-    @staticmethod
-    def _empty_spectra(shape: tuple[int, ...]) -> np.ndarray:
-        return np.empty(shape, dtype=np.complex64)
 
     def best_per_reference(self, prepared: PreparedQueries, stop: int | None = None,
                            chunk_size: int = 256) -> np.ndarray:
@@ -269,7 +262,7 @@ class SpectralBank(_ReferenceImages):
             chunk = slice(start, start + chunk_size)
             pairs = self._allowed_scores(prepared, references[chunk], allowed[chunk])
             pair_best = self._to_host(self._amax(pairs.scores.reshape(
-                self.n_shifts ** 2, len(pairs.positions)), axis=0))
+                len(pairs.positions), self.n_shifts ** 2), axis=1))
             np.maximum.at(best, start + pairs.positions, pair_best)
         return best, (pairs if len(references) <= chunk_size else None)
 
@@ -283,29 +276,46 @@ class SpectralBank(_ReferenceImages):
 
     def _allowed_scores(self, prepared: PreparedQueries, references: np.ndarray,
                         allowed: np.ndarray) -> AllowedScores:
-        """The scores of the pairs allowed[k, a] permits, one query at a time against only its
-        references: a pair not allowed costs nothing, and no operator of every query is
-        built."""
-        # Gathered once: whole blocks of the reference-major storage.
-        candidates = self._bank[self._index(references)]
+        """The scores of the pairs allowed[k, a] permits, each pair correlated by the 2-D
+        spectra of its query and its reference: a pair not allowed costs nothing, and no
+        operator of every query is built. A pair's product is inverted on the window alone, by
+        two matrix products over a chunk of pairs (along y, then along x as a real inverse of
+        the half spectrum)."""
         queries, positions = np.nonzero(np.asarray(allowed).T)
-        spectra = self._empty_spectra((self.n_freqs, self.n_shifts, len(queries)))
-        bounds = np.searchsorted(queries, np.arange(allowed.shape[1] + 1))
-        present = np.unique(queries)
+        plane = self._plane_spectra(prepared)
+        # (L, n, K): the candidates' row spectra transformed along y as well.
+        candidates = self._contiguous(self._dft(self._bank[self._index(references)],
+                                                self.column_length).swapaxes(0, 2).swapaxes(1, 2))
+        scores = self._empty_scores(len(queries) * self.n_shifts ** 2).reshape(
+            self.n_shifts, len(queries), self.n_shifts)
+        starts = range(0, len(queries), _PAIRS_PER_CHUNK)
 
-        def multiply(worker: int) -> None:
-            """The products of every threads-th query, from the worker-th on."""
-            for query in present[worker:: self.workers.threads]:
-                first, last = int(bounds[query]), int(bounds[query + 1])
-                self._multiply_into(self._query_operator(prepared, int(query), worker),
-                                    self._columns(candidates[self._index(positions[first:last])]),
-                                    spectra[:, :, first:last])
+        def correlate(worker: int) -> None:
+            """The pairs of every threads-th chunk, from the worker-th on."""
+            for first in starts[worker:: self.workers.threads]:
+                chunk = slice(first, first + _PAIRS_PER_CHUNK)
+                product = (plane[:, self._index(queries[chunk])]
+                           * candidates[:, self._index(positions[chunk])])
+                count = product.shape[1]
+                # (di, pair, k): the correlation along y within the window, a spectrum along x.
+                along_y = self._along_y @ product.reshape(self.column_length, -1)
+                scores[:, first: first + count] = (
+                    self._interleaved(along_y).reshape(-1, 2 * self.n_freqs) @ self._inverse.T
+                ).reshape(self.n_shifts, count, self.n_shifts)
 
-        self.workers.run(multiply)
-        # One inverse for every pair: a product as wide as all of them runs at BLAS speed.
-        scores = self._windowed_inverse(spectra).reshape(self.n_shifts, self.n_shifts,
-                                                          len(queries))
-        return AllowedScores(queries, positions, scores)
+        self.workers.run(correlate)
+        return AllowedScores(queries, positions, scores.swapaxes(0, 1))
+
+    def _plane_spectra(self, prepared: PreparedQueries) -> np.ndarray:
+        """The conjugated 2-D spectra (column_length, A, K) of the prepared queries, made once
+        per batch."""
+        if prepared.plane_spectra is None:
+            prepared.plane_spectra = self._conjugated_plane_spectra(prepared.images)
+        return prepared.plane_spectra
+
+    def _conjugated_plane_spectra(self, images: np.ndarray) -> np.ndarray:
+        spectra = sp_fft.rfft2(images, s=(self.column_length, self.fft_length))
+        return np.ascontiguousarray(spectra.swapaxes(0, 1).conj())
 
     def peaks(self, computed: "np.ndarray | AllowedScores",
               columns: np.ndarray | None = None) -> np.ndarray:
@@ -327,9 +337,9 @@ class SpectralBank(_ReferenceImages):
             if not len(own):
                 continue
             flat, values = self._argmax_rows(
-                pairs.scores[:, :, self._index(own)].reshape(self.n_shifts ** 2, len(own)))
+                pairs.scores[self._index(own)].reshape(len(own), self.n_shifts ** 2).T)
             best = int(np.argmax(values))
-            dj, di = np.unravel_index(int(flat[best]), (self.n_shifts, self.n_shifts))
+            di, dj = np.unravel_index(int(flat[best]), (self.n_shifts, self.n_shifts))
             located[row] = (pairs.queries[own[best]], di - self.max_shift,
                             dj - self.max_shift, values[best])
         return located
@@ -363,6 +373,13 @@ def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarr
     return np.ascontiguousarray(inverse.reshape(len(shifts), 2 * n_freqs), dtype=np.float32)
 
 
+def _windowed_column_inverse(length: int, max_shift: int) -> np.ndarray:
+    """(2S+1, L) complex matrix: a length-L spectrum -> its inverse DFT at |di| <= S."""
+    shifts = np.arange(-max_shift, max_shift + 1)[:, None]
+    return (np.exp(2j * np.pi * shifts * np.arange(length)[None, :] / length)
+            / length).astype(np.complex64)
+
+
 def local_fft_shape(height: int, width: int, max_shift: int) -> tuple[int, int]:
     """The 2-D FFT size of a windowed correlation: 136 = 8 x 17 at the defaults; a 5-smooth
     length is ~2x faster."""
@@ -374,8 +391,9 @@ class LocalCorrelation:
     """The local stage's windowed correlation by 2-D FFT, for H x W images within max_shift.
 
     A query's spectrum is computed once (spectra) and correlated with any number of references
-    (against): the finalists of one query mostly share their headings, and so their turned
-    queries (KITTI 00: 909 distinct headings among 1500 finalists).
+    (correlate, pair by pair, every finalist's in one batch): the finalists of one query mostly
+    share their headings, and so their turned queries (KITTI 00: 909 distinct headings among
+    1500 finalists).
     """
 
     def __init__(self, image_shape: tuple[int, int], max_shift: int) -> None:
@@ -391,20 +409,16 @@ class LocalCorrelation:
         """Single images' spectra as one batch."""
         return np.stack(spectra)
 
-    def against(self, reference: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-        """The windowed correlation (A, 2S+1, 2S+1) of a batch of query spectra (A, ...) with
-        reference (H, W), whose spectrum is computed here once."""
-        ref_spectrum = self.spectra(reference)
+    def correlate(self, query_spectra: np.ndarray, reference_spectra: np.ndarray) -> np.ndarray:
+        """The windowed correlations (P, 2S+1, 2S+1) of query p with reference p, from their
+        spectra (P, ...) (either batch may hold one, for every pair)."""
         rows, cols = self.window % self.shape[0], self.window % self.shape[1]
-
-        def correlate(query_spectra: np.ndarray) -> np.ndarray:
-            # Inverse along y first and keep the window's rows: the inverse along x then runs on
-            # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
-            window_rows = sp_fft.ifft(np.conj(query_spectra) * ref_spectrum, axis=-2)[:, rows]
-            return sp_fft.irfft(window_rows, n=self.shape[1], axis=-1)[:, :, cols].astype(
-                np.float32)
-
-        return correlate
+        # Inverse along y first and keep the window's rows: the inverse along x then runs on
+        # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
+        window_rows = sp_fft.ifft(np.conj(query_spectra) * reference_spectra, axis=-2,
+                                  overwrite_x=True)[:, rows]
+        return sp_fft.irfft(window_rows, n=self.shape[1], axis=-1)[:, :, cols].astype(
+            np.float32)
 
 
 def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -> np.ndarray:
@@ -413,54 +427,4 @@ def correlate_fft2(queries: np.ndarray, reference: np.ndarray, max_shift: int) -
     Cheaper than a SpectralBank for a handful of references. Returns (A, 2S+1, 2S+1).
     """
     correlation = LocalCorrelation(reference.shape, max_shift)
-    return correlation.against(reference)(correlation.spectra(queries))
-
-
-class PairBank(_ReferenceImages):
-    """Reference images' 2-D spectra, scored against queries pair by pair: each (reference,
-    query) pair's windowed correlation peak, for any list of pairs at once.
-
-    A pair is an elementwise product of the two spectra; the inverse DFT restricted to the
-    shift window is then two matrix products over every pair together (along y, then along x
-    as a real inverse of the half spectrum). The cost follows the pairs, not the queries: for
-    the candidate stage's many references each at a few headings of its own, where the
-    SpectralBank's per-query products would be dominated by their count. Storage is (L,
-    capacity, F): the pairs' spectra are gathered straight into the products' layout.
-    """
-
-    _REFERENCE_AXIS = 1
-
-    def __init__(self, size: int, max_shift: int, capacity: int = 1) -> None:
-        _require_shift(max_shift)
-        self.size, self.max_shift = size, max_shift
-        self.length = size + max_shift
-        self.n_freqs = self.length // 2 + 1
-        shifts = np.arange(-max_shift, max_shift + 1)
-        phase = 2j * np.pi / self.length
-        self._along_y = (np.exp(phase * np.outer(shifts, np.arange(self.length)))
-                         / self.length).astype(np.complex64)
-        weight = _half_spectrum_weights(self.length, self.n_freqs)
-        self._along_x = (weight[:, None] * np.exp(phase * np.outer(np.arange(self.n_freqs), shifts))
-                         / self.length).astype(np.complex64)
-        self._start_empty(capacity)
-
-    def _spectra(self, images: np.ndarray) -> np.ndarray:
-        """(L, n, F) spectra of images (n, size, size), zero-padded to the linear window."""
-        images = np.asarray(images, dtype=np.float32)
-        if images.ndim != 3 or images.shape[1:] != (self.size, self.size):
-            raise ValueError(f"expected (n, {self.size}, {self.size}) images, got {images.shape}")
-        return sp_fft.rfft2(images, s=(self.length, self.length)).transpose(1, 0, 2)
-
-    def _new_bank(self, capacity: int) -> np.ndarray:
-        return np.zeros((self.length, capacity, self.n_freqs), dtype=np.complex64)
-
-    def best(self, queries: np.ndarray, references: np.ndarray, query_of_pair: np.ndarray
-             ) -> np.ndarray:
-        """(P,) float32: the best score within the shift window of each pair, reference
-        references[p] against query queries[query_of_pair[p]] (queries (A, size, size))."""
-        product = np.conj(self._spectra(queries))[:, query_of_pair]
-        product *= self._bank[:, references]
-        n_pairs = len(references)
-        along_y = self._along_y @ product.reshape(self.length, n_pairs * self.n_freqs)
-        scores = (along_y.reshape(-1, self.n_freqs) @ self._along_x).real
-        return scores.reshape(-1, n_pairs, scores.shape[1]).max(axis=2).max(axis=0)
+    return correlation.correlate(correlation.spectra(queries), correlation.spectra(reference[None]))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 # Least-squares fit of f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2 on the 3x3 grid
@@ -23,13 +25,26 @@ def subcell_peak(surface: np.ndarray, row: int, col: int) -> tuple[np.ndarray, n
         patch = surface[row - 1: row + 2, col - 1: col + 2].astype(np.float64).ravel()
         _, gx, gy, cxx, cxy, cyy = _QUADRATIC_FIT @ patch
         hessian = np.array([[2 * cxx, cxy], [cxy, 2 * cyy]])
-        if np.all(np.linalg.eigvalsh(-hessian) > 1e-12):
-            offset = -np.linalg.solve(hessian, [gx, gy])
+        if smallest_eigenvalue(-hessian) > 1e-12:
+            offset = -inverse_2x2(hessian) @ np.array([gx, gy])
             if np.all(np.abs(offset) <= 1.0):
                 return np.clip(offset, -0.5, 0.5), hessian
     dx, hxx = subsample_peak(surface[row], col)
     dy, hyy = subsample_peak(surface[:, col], row)
     return np.array([dx, dy]), np.array([[hxx, 0.0], [0.0, hyy]])
+
+
+# Closed forms: a numpy.linalg call on a 2x2 matrix costs ~20 us, and every match makes several.
+def smallest_eigenvalue(symmetric: np.ndarray) -> float:
+    """The smaller eigenvalue of a symmetric 2x2 matrix."""
+    a, b, c = float(symmetric[0, 0]), float(symmetric[0, 1]), float(symmetric[1, 1])
+    return 0.5 * (a + c) - math.hypot(0.5 * (a - c), b)
+
+
+def inverse_2x2(matrix: np.ndarray) -> np.ndarray:
+    """The inverse of an invertible 2x2 matrix."""
+    (a, b), (c, d) = matrix
+    return np.array([[d, -b], [-c, a]]) / (a * d - b * c)
 
 
 def subsample_peak(values: np.ndarray, index: int) -> tuple[float, float]:

@@ -25,8 +25,8 @@ from mf_lpr_ros.core.descriptor import (
     weighted,
 )
 from mf_lpr_ros.core.map_store import GLOBAL_MAP_KIND, ReferenceMap
-from mf_lpr_ros.core.matched_filter import PairBank, PreparedQueries
-from mf_lpr_ros.core.peak import subcell_peak, subsample_peak
+from mf_lpr_ros.core.matched_filter import PreparedQueries, SpectralBank
+from mf_lpr_ros.core.peak import inverse_2x2, smallest_eigenvalue, subcell_peak, subsample_peak
 from mf_lpr_ros.core.pose import (
     alignment_from_poses,
     planar,
@@ -187,9 +187,11 @@ class MatchedFilterIndex:
         self.bank, self.prefilter = backend.bank, backend.prefilter
         # The candidate stage's second opinion on the prefilter's list (_rescored): small
         # enough for the host on any backend.
-        self.coarse_bank = PairBank(
-            size // 2, min(math.ceil(search.max_shift_m / (2 * low_cell)), size // 2 - 1),
+        self.coarse_bank = SpectralBank(
+            size // 2, size // 2,
+            min(math.ceil(search.max_shift_m / (2 * low_cell)), size // 2 - 1),
             search.prefilter_rescore_k if self.spectra_on_demand else len(reference_map),
+            backend.workers,
         ) if 0 < search.prefilter_top_k < search.prefilter_rescore_k else None
         self._local_correlation = backend.local
         # Every heading at once from the occupied cells, where the footprint does not turn.
@@ -359,17 +361,9 @@ class MatchedFilterIndex:
             located = (self.bank.peaks(volume, positions) if volume is not None
                        else self.bank.locate(prepared, columns[positions],
                                              None if allowed is None else allowed[positions]))
-            # The finalists' first angles are turned in one batch, then the finalists are
-            # aligned on the search's threads: the local stage is mostly FFTs, which run
-            # without the GIL.
-            finalist_angles = self.global_angles[headings[np.unique(located[:, 0]).astype(int)]]
-            self._turn_query(occupancy, [(angle + self.local_offsets,
-                                          self._first_local_angles(len(self.local_offsets)))
-                                         for angle in finalist_angles])
-            return self._workers.map(
-                lambda job: self._local(occupancy, int(job[0]),
-                                        self.global_angles[headings[int(job[1][0])]]),
-                list(zip(searched[positions], located)))
+            return self._local_peaks(occupancy, [
+                (int(reference), float(self.global_angles[headings[int(row[0])]]))
+                for reference, row in zip(searched[positions], located)])
 
         peaks = local_peaks(order[: self.search.top_n])
         peaks.sort(key=lambda peak: -peak.score)
@@ -559,7 +553,8 @@ class MatchedFilterIndex:
         self._turned_query, self._query_seen = {}, self._seen(occupancy)
         self._tables_kept = False
         try:
-            similarity = max(self._local(occupancy, reference, yaw).confidence for yaw in yaws)
+            similarity = max(peak.confidence for peak in self._local_peaks(
+                occupancy, [(reference, yaw) for yaw in yaws]))
         finally:
             self._turned_query, self._query_seen = query_state
             self._tables_kept = True
@@ -678,18 +673,16 @@ class MatchedFilterIndex:
         # of the pairs.
         allowed = self._allowed_headings(low_query, wide,
                                          window=self.search.rotation_step_deg / 2)
-        positions, pair_headings = np.nonzero(allowed)
-        headings, query_of_pair = np.unique(pair_headings, return_inverse=True)
+        headings = np.flatnonzero(allowed.any(axis=0))
         if self.spectra_on_demand:
             self.coarse_bank.refill(pool(self._low_in_order(wide), 2))
             columns = np.arange(len(wide))
         else:
             columns = wide
-        pair_scores = self.coarse_bank.best(pool(self._turned_and_pooled(occupancy, headings), 2),
-                                            columns[positions], query_of_pair)
-        # np.nonzero lists the pairs by position: each reference's best over its headings.
-        scores = np.maximum.reduceat(pair_scores, np.searchsorted(positions,
-                                                                  np.arange(len(wide))))
+        prepared = self.coarse_bank.prepare_queries(
+            pool(self._turned_and_pooled(occupancy, headings), 2))
+        scores, _ = self.coarse_bank.best_of_subset(prepared, columns, self.search.chunk_size,
+                                                    allowed[:, headings])
         scores = self._normalised(scores, self.coarse_bank.norms[columns])
         return wide[np.argsort(-scores, kind="stable")]
 
@@ -718,18 +711,37 @@ class MatchedFilterIndex:
         return np.concatenate([searched, near])
 
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
+        return self._local_peaks(occupancy, [(reference, global_angle)])[0]
+
+    def _local_peaks(self, occupancy: np.ndarray, jobs: list[tuple[int, float]]
+                     ) -> list["_LocalPeak"]:
+        """The local stage for each (reference, global angle) of jobs, every job's FFTs in one
+        batch: finalists at one heading share their turned queries, and a few large batches
+        cost less than many small ones."""
         w = self.params.unoccupied_weight
-        angles = global_angle + self.local_offsets
-        reference_image = weighted(self.map.occupancy(reference), w, self.covered)
+        correlation = self._local_correlation
+        angle_sets = [global_angle + self.local_offsets for _, global_angle in jobs]
+        reference_images = np.stack([weighted(self.map.occupancy(reference), w, self.covered)
+                                     for reference, _ in jobs])
+        reference_spectra = correlation.spectra(reference_images)
 
-        def turned(indices: np.ndarray):
-            """The spectra of the query's weights at angles[indices]."""
-            self._turn_query(occupancy, [(angles, indices)])
-            return self._local_correlation.stack(
-                [self._turned_query[float(angles[index])].spectrum for index in indices])
+        def correlate(job_of_pair: np.ndarray, angle_of_pair: np.ndarray) -> np.ndarray:
+            """The surfaces of the query at angle_sets[job][angle] against job's reference,
+            for each pair (job, angle), the query turned to those angles first."""
+            self._turn_query(occupancy, [(angle_sets[job], angle_of_pair[job_of_pair == job])
+                                         for job in np.unique(job_of_pair)])
+            query_spectra = correlation.stack([
+                self._turned_query[float(angle_sets[job][angle])].spectrum
+                for job, angle in zip(job_of_pair, angle_of_pair)])
+            return correlation.correlate(query_spectra, reference_spectra[job_of_pair])
 
-        surface = self._coarse_to_fine(turned, len(angles),
-                                       self._local_correlation.against(reference_image))
+        surfaces = self._coarse_to_fine(correlate, len(jobs), len(self.local_offsets))
+        return [self._local_peak(reference, angles, surface, image) for (reference, _), angles,
+                surface, image in zip(jobs, angle_sets, surfaces, reference_images)]
+
+    def _local_peak(self, reference: int, angles: np.ndarray, surface: np.ndarray,
+                    reference_image: np.ndarray) -> "_LocalPeak":
+        """The local stage's peak over the surfaces (angles, 2S+1, 2S+1) of reference."""
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
@@ -755,8 +767,10 @@ class MatchedFilterIndex:
         w = self.params.unoccupied_weight
         keys, weights, footprints = [], [], []
         for angles, indices in angle_sets:
-            missing = np.array([index for index in indices
-                                if float(angles[index]) not in self._turned_query], dtype=np.int64)
+            # An angle may recur in the sets of one batch: finalists a step apart share some.
+            missing = np.array([index for index in np.unique(indices)
+                                if float(angles[index]) not in self._turned_query
+                                and float(angles[index]) not in keys], dtype=np.int64)
             if not len(missing):
                 continue
             covered = self._query_covered(angles, missing)
@@ -823,23 +837,27 @@ class MatchedFilterIndex:
         second, so that the two ends are each beside one of them; all of a few."""
         return np.arange(n_angles) if n_angles < 5 else np.arange(1, n_angles, 2)
 
-    def _coarse_to_fine(self, turned: Callable[[np.ndarray], np.ndarray], n_angles: int,
-                        correlate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """Correlation surfaces (A, 2S+1, 2S+1) of the local angles that can hold the peak:
-        every other angle first, then the two beside the best of those; the rest stay -inf
-        (and the query is never turned to them). The score falls off smoothly over a few
-        degrees, so the peak lies beside the best of every other angle, and the sub-degree
-        fit needs only it and its two neighbours: 5 of 7 angles at the defaults.
-        turned(indices) gives the query's spectra at those angles, correlate their surfaces."""
+    def _coarse_to_fine(self, correlate: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        n_jobs: int, n_angles: int) -> np.ndarray:
+        """Correlation surfaces (jobs, A, 2S+1, 2S+1) of the local angles that can hold each
+        job's peak: every other angle first, then the two beside the best of those; the rest
+        stay -inf (and the query is never turned to them). The score falls off smoothly over a
+        few degrees, so the peak lies beside the best of every other angle, and the
+        sub-degree fit needs only it and its two neighbours: 5 of 7 angles at the defaults.
+        correlate(jobs, angles) gives the surfaces of the pairs (jobs[p], angles[p]), every
+        job's pairs in one batch."""
         coarse = self._first_local_angles(n_angles)
-        if len(coarse) == n_angles:
-            return correlate(turned(coarse))
         shifts = 2 * self.high_shift + 1
-        surface = np.full((n_angles, shifts, shifts), -np.inf, dtype=np.float32)
-        surface[coarse] = correlate(turned(coarse))
-        best = int(coarse[np.argmax(surface[coarse].reshape(len(coarse), -1).max(axis=1))])
-        beside = np.array([k for k in (best - 1, best + 1) if 0 <= k < n_angles])
-        surface[beside] = correlate(turned(beside))
+        surface = np.full((n_jobs, n_angles, shifts, shifts), -np.inf, dtype=np.float32)
+        jobs, angles = np.repeat(np.arange(n_jobs), len(coarse)), np.tile(coarse, n_jobs)
+        surface[jobs, angles] = correlate(jobs, angles)
+        if len(coarse) == n_angles:
+            return surface
+        best = coarse[np.argmax(surface[:, coarse].reshape(n_jobs, len(coarse), -1).max(axis=2),
+                                axis=1)]
+        beside = np.array([(job, angle) for job in range(n_jobs)
+                           for angle in (best[job] - 1, best[job] + 1) if 0 <= angle < n_angles])
+        surface[beside[:, 0], beside[:, 1]] = correlate(beside[:, 0], beside[:, 1])
         return surface
 
     def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
@@ -861,8 +879,8 @@ class MatchedFilterIndex:
         inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
         relative_covariance = np.zeros((3, 3))
         normalised_hessian = -cell_hessian / peak_value
-        if np.all(np.linalg.eigvalsh(normalised_hessian) > 1e-6):
-            relative_covariance[:2, :2] = (np.linalg.inv(normalised_hessian) * voxel ** 2
+        if smallest_eigenvalue(normalised_hessian) > 1e-6:
+            relative_covariance[:2, :2] = (inverse_2x2(normalised_hessian) * voxel ** 2
                                            * _CURVATURE_TO_VARIANCE * inflation)
         else:
             relative_covariance[:2, :2] = np.eye(2) * (self.search.max_shift_m / 2) ** 2

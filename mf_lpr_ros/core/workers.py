@@ -3,8 +3,8 @@
 numpy releases the GIL while its products and scipy's FFTs run, so threads of one process run
 them on separate cores. OpenBLAS's own threads do not mix with ours: after a product large
 enough for it to share, its threads spin-wait for the next one, and a thread of ours then finds
-its core taken (a query's 30-70 small per-heading products, too small for OpenBLAS to share,
-ran slower on 2 threads than on 1 whenever a large product had run just before). So while a
+its core taken (small products, too small for OpenBLAS to share, ran slower on 2 threads than
+on 1 whenever a large product had run just before; session 18). So while a
 search runs on several threads, BLAS is held to one thread (threadpoolctl) and the few large
 products are split by columns among ours instead (Workers.matmul). Without threadpoolctl a
 search stays on one thread.

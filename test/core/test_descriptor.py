@@ -127,6 +127,10 @@ def test_a_few_angles_of_a_set_turn_as_the_whole_set_does():
     only = np.array([71, 3, 40])
     assert np.array_equal(rotate_occupancy(occupancy, angles, only),
                           rotate_occupancy(occupancy, angles)[only])
+    # A set turned once, its table not kept, turns only to those angles and alike.
+    odd = angles + 1.7
+    assert np.array_equal(rotate_occupancy(occupancy, odd, only, cached=False),
+                          rotate_occupancy(occupancy, odd)[only])
 
 
 def test_density_image_matches_point_descriptor():

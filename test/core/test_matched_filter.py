@@ -3,7 +3,6 @@ import pytest
 
 from mf_lpr_ros.core.matched_filter import (
     LocalCorrelation,
-    PairBank,
     SpectralBank,
     correlate_fft2,
 )
@@ -45,24 +44,29 @@ def test_bank_equals_direct_correlation(rng, size, max_shift):
 
 
 @pytest.mark.parametrize("size,max_shift", [(12, 4), (15, 3), (10, 9)])
-def test_pair_bank_scores_each_pair_at_its_best_direct_correlation(rng, size, max_shift):
+def test_allowed_pairs_score_as_the_direct_correlation_at_any_size(rng, size, max_shift):
     references = rng.normal(size=(6, size, size)).astype(np.float32)
     queries = rng.normal(size=(4, size, size)).astype(np.float32)
-    bank = PairBank(size, max_shift, capacity=2)
+    bank = SpectralBank(size, size, max_shift, capacity=2)
     bank.append(references[:2])
     bank.append(references[2:])  # growing past capacity keeps earlier references
-    pairs_reference = np.array([5, 0, 3, 3, 1, 5])
-    pairs_query = np.array([0, 2, 1, 3, 3, 0])
-    scores = bank.best(queries, pairs_reference, pairs_query)
-    direct = [correlate_direct(queries[a], references[r], max_shift).max()
-              for r, a in zip(pairs_reference, pairs_query)]
-    np.testing.assert_allclose(scores, direct, atol=1e-3)
+    subset = np.array([5, 0, 3, 1])
+    allowed = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 1], [0, 0, 0, 1]], dtype=bool)
+    best, pairs = bank.best_of_subset(bank.prepare_queries(queries), subset, allowed=allowed)
+    for p, (k, a) in enumerate(zip(pairs.positions, pairs.queries)):
+        np.testing.assert_allclose(pairs.scores[p],
+                                   correlate_direct(queries[a], references[subset[k]], max_shift),
+                                   atol=1e-3)
+    expected = [max(correlate_direct(queries[a], references[r], max_shift).max()
+                    for a in np.flatnonzero(allowed[k])) for k, r in enumerate(subset)]
+    np.testing.assert_allclose(best, expected, atol=1e-3)
     np.testing.assert_allclose(bank.norms, np.linalg.norm(references, axis=(1, 2)), rtol=1e-5)
     bank.refill(references[4:])
     assert len(bank) == 2
-    np.testing.assert_allclose(bank.best(queries, np.array([1]), np.array([2])),
-                               [correlate_direct(queries[2], references[5], max_shift).max()],
-                               atol=1e-3)
+    best, _ = bank.best_of_subset(bank.prepare_queries(queries), np.array([1]),
+                                  allowed=np.array([[0, 0, 1, 0]], dtype=bool))
+    np.testing.assert_allclose(best, [correlate_direct(queries[2], references[5],
+                                                       max_shift).max()], atol=1e-3)
 
 
 MAX_SHIFT = 5
@@ -117,12 +121,18 @@ def test_query_spectra_serve_several_references_and_batches(rng):
     queries = rng.normal(size=(5, 30, 30)).astype(np.float32)
     correlation = LocalCorrelation((30, 30), 6)
     spectra = correlation.spectra(queries)
-    for reference in references:
-        correlate = correlation.against(reference)
+    reference_spectra = correlation.spectra(references)
+    for r, reference in enumerate(references):
         for batch in ([0, 1], [2, 3, 4], [4, 0]):
             np.testing.assert_allclose(
-                correlate(correlation.stack([spectra[k] for k in batch])),
+                correlation.correlate(correlation.stack([spectra[k] for k in batch]),
+                                      reference_spectra[r: r + 1]),
                 correlate_fft2(queries[batch], reference, 6), atol=1e-5)
+    # Pair by pair: query k against reference k % 2, in one batch.
+    pairs = correlation.correlate(spectra, reference_spectra[np.arange(5) % 2])
+    for k in range(5):
+        np.testing.assert_allclose(pairs[k], correlate_fft2(queries[k: k + 1],
+                                                            references[k % 2], 6)[0], atol=1e-5)
 
 
 def test_a_bank_on_two_threads_scores_as_on_one(rng):
@@ -153,7 +163,7 @@ def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):
     # Exactly the allowed pairs were computed, each scoring as in the full search.
     assert sorted(zip(pairs.positions, pairs.queries)) == sorted(zip(*np.nonzero(allowed)))
     for p, (k, a) in enumerate(zip(pairs.positions, pairs.queries)):
-        np.testing.assert_allclose(pairs.scores[:, :, p], full[:, a, :, k], atol=1e-4)
+        np.testing.assert_allclose(pairs.scores[p], full[:, a, :, k].T, atol=1e-4)
     for k in range(len(subset)):
         expected = full[:, allowed[k], :, k].max() if allowed[k].any() else -np.inf
         assert best[k] == pytest.approx(expected, abs=1e-4)

@@ -1,8 +1,9 @@
-"""Sub-sample peaks of periodic samples (core/peak.py)."""
+"""Sub-sample peaks of periodic samples, and the 2x2 closed forms (core/peak.py)."""
 
 import numpy as np
+import pytest
 
-from mf_lpr_ros.core.peak import circular_peaks
+from mf_lpr_ros.core.peak import circular_peaks, inverse_2x2, smallest_eigenvalue
 
 
 def periodic_peaks(centres: np.ndarray, n_samples: int = 40) -> np.ndarray:
@@ -28,3 +29,15 @@ def test_a_flat_top_gives_no_offset_and_a_plateau_of_two_its_middle():
     assert circular_peaks(np.ones((8, 1)))[0] == 0.0
     plateau = np.array([[0.0], [1.0], [2.0], [3.0], [3.0], [1.0], [0.0], [0.0]])
     assert circular_peaks(plateau)[0] == 3.5
+
+
+def test_closed_forms_agree_with_numpy_linalg():
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        a, b, c = rng.normal(size=3)
+        symmetric = np.array([[a, b], [b, c]])
+        assert smallest_eigenvalue(symmetric) == pytest.approx(
+            np.linalg.eigvalsh(symmetric)[0], abs=1e-12)
+        matrix = rng.normal(size=(2, 2))
+        np.testing.assert_allclose(inverse_2x2(matrix), np.linalg.inv(matrix), rtol=1e-9,
+                                   atol=1e-9)

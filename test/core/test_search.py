@@ -127,22 +127,22 @@ def test_finalists_at_one_heading_turn_the_query_once(world, monkeypatch):
         points, pose = scan_world(world, x, 0, 0, np.random.default_rng(i))
         reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose, i)
     index = MatchedFilterIndex(reference_map, SearchParams(threads=1, top_n=3))
-    transformed = []
-    correlation = type(index._local_correlation)
-    original = correlation.spectra
-
-    def counting(self, images):
-        if np.ndim(images) == 3:
-            transformed.append(len(images))
-        return original(self, images)
-
-    monkeypatch.setattr(correlation, "spectra", counting)
     points, _ = scan_world(world, 0.3, 0.2, 0.05, np.random.default_rng(9))
-    result = index.query(describe_points(points, PARAMS))
+    query = describe_points(points, PARAMS)
+    turned = []
+    original = index._rotated
+
+    def counting(image, angles, only):
+        if image is query:
+            turned.append(len(angles) if only is None else len(only))
+        return original(image, angles, only)
+
+    monkeypatch.setattr(index, "_rotated", counting)
+    result = index.query(query)
     assert {h.reference_index for h in result.hypotheses} == {0, 1, 2}
     n_angles = len(index.local_offsets)
-    # Each finalist alone transforms 5 of the 7 angles: 15 for three.
-    assert 0 < sum(transformed) <= n_angles
+    # Each finalist alone turns the query to 5 of the 7 angles: 15 for three.
+    assert 0 < sum(turned) <= n_angles
 
 
 @pytest.mark.parametrize("n_angles", [7, 11])
@@ -156,17 +156,37 @@ def test_the_local_stage_finds_a_smooth_peak_at_any_angle_from_part_of_them(synt
     for peak in range(n_angles):
         correlated = []
 
-        def correlate(indices, peak=peak):
+        def correlate(jobs, indices, peak=peak):
+            assert (jobs == 0).all()
             correlated.extend(indices.tolist())
             heights = np.exp(-0.5 * ((indices - peak) / 1.5) ** 2)
             return np.broadcast_to(heights[:, None, None], (len(indices), shifts, shifts))
 
-        surface = index._coarse_to_fine(lambda indices: indices, n_angles, correlate)
+        surface = index._coarse_to_fine(correlate, 1, n_angles)[0]
         per_angle = surface.reshape(n_angles, -1).max(axis=1)
         assert int(np.argmax(per_angle)) == peak
         neighbours = [k for k in (peak - 1, peak + 1) if 0 <= k < n_angles]
         assert np.isfinite(per_angle[neighbours]).all()
         assert len(correlated) == len(set(correlated)) == (n_angles - 1) // 2 + 2
+
+
+def test_the_local_stage_batches_finalists_each_to_its_own_peak(synthetic_map):
+    """Several jobs in one batch: each job's angles are chosen from its own surfaces."""
+    index = MatchedFilterIndex(synthetic_map, SearchParams(threads=1))
+    shifts = 2 * index.high_shift + 1
+    n_angles, peaks = 7, np.array([0, 3, 6, 4])
+    calls = []
+
+    def correlate(jobs, indices):
+        calls.append(len(jobs))
+        heights = np.exp(-0.5 * ((indices - peaks[jobs]) / 1.5) ** 2)
+        return np.broadcast_to(heights[:, None, None], (len(indices), shifts, shifts))
+
+    surfaces = index._coarse_to_fine(correlate, len(peaks), n_angles)
+    assert (surfaces.reshape(len(peaks), n_angles, -1).max(axis=2).argmax(axis=1)
+            == peaks).all()
+    # Two batches, whatever the number of jobs.
+    assert len(calls) == 2
 
 
 def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):

@@ -52,7 +52,7 @@ def test_bank_operations_match_numpy():
     np.testing.assert_allclose(gpu.norms, cpu.norms)
     correlation = torch_backend.TorchLocalCorrelation(references.shape[1:], 4)
     np.testing.assert_allclose(
-        correlation.against(references[3])(correlation.spectra(queries)),
+        correlation.correlate(correlation.spectra(queries), correlation.spectra(references[3:4])),
         correlate_fft2(queries, references[3], 4), atol=1e-4)
 
 

@@ -9,12 +9,10 @@ torch (or "auto" finds a CUDA device).
 
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 import torch
 
-from mf_lpr_ros.core.matched_filter import LocalCorrelation, PreparedQueries, SpectralBank
+from mf_lpr_ros.core.matched_filter import LocalCorrelation, SpectralBank
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 
 
@@ -62,8 +60,16 @@ class TorchArrays:
         return torch.view_as_real(values).movedim(-1, 1)
 
     @staticmethod
-    def _multiply_into(left: torch.Tensor, right: torch.Tensor, out: torch.Tensor) -> None:
-        out.copy_(left @ right)
+    def _dft(values: torch.Tensor, length: int) -> torch.Tensor:
+        return torch.fft.fft(values, n=length, dim=-1)
+
+    @staticmethod
+    def _contiguous(values: torch.Tensor) -> torch.Tensor:
+        return values.contiguous()
+
+    @staticmethod
+    def _interleaved(values: torch.Tensor) -> torch.Tensor:
+        return torch.view_as_real(values.contiguous()).flatten(-2)
 
     @staticmethod
     def _nbytes(tensor: torch.Tensor) -> int:
@@ -79,6 +85,7 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
         self.device = device or default_device()
         super().__init__(height, width, max_shift, capacity=capacity)
         self._inverse = self._from_host(self._inverse)
+        self._along_y = self._from_host(self._along_y)
 
     def _new_bank(self, capacity: int) -> torch.Tensor:
         return torch.zeros((capacity, self.n_freqs, self.height), dtype=torch.complex64,
@@ -88,27 +95,24 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
     def _columns(blocks: torch.Tensor) -> torch.Tensor:
         return blocks.permute(1, 2, 0)
 
-    def _empty_spectra(self, shape: tuple[int, ...]) -> torch.Tensor:
-        return torch.empty(shape, dtype=torch.complex64, device=self.device)
-
     def reserve_operator(self, n_queries: int) -> tuple[int, ...]:
         return (self.n_freqs, n_queries, self.n_shifts, self.height)
 
     def _operator_buffer(self, shape: tuple[int, ...]) -> None:
         return None
 
-    def _one_query_buffer(self, worker: int) -> None:
-        return None
-
-    def prepare_queries(self, queries: np.ndarray) -> PreparedQueries:
+    def _windows(self, images: torch.Tensor) -> torch.Tensor:
         height, shift = self.height, self.max_shift
-        images = self._from_host(np.asarray(queries, dtype=np.float32))
-        spectra = torch.fft.rfft(images, n=self.fft_length, dim=2).permute(2, 0, 1)
         rows = torch.zeros((self.n_freqs, len(images), height + 2 * shift),
                            dtype=torch.complex64, device=self.device)
-        rows[:, :, shift: shift + height] = spectra.conj()
+        spectra = torch.fft.rfft(images, n=self.fft_length, dim=2)
+        rows[:, :, shift: shift + height] = spectra.permute(2, 0, 1).conj()
         # (K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
-        return PreparedQueries(rows.unfold(2, height, 1).flip(2))
+        return rows.unfold(2, height, 1).flip(2)
+
+    def _conjugated_plane_spectra(self, images: torch.Tensor) -> torch.Tensor:
+        spectra = torch.fft.rfft2(images, s=(self.column_length, self.fft_length))
+        return spectra.transpose(0, 1).conj().contiguous()
 
     def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
         return windows.reshape(self.n_freqs, -1, self.height)
@@ -148,13 +152,9 @@ class TorchLocalCorrelation(LocalCorrelation):
     def stack(spectra: list[torch.Tensor]) -> torch.Tensor:
         return torch.stack(spectra)
 
-    def against(self, reference: np.ndarray) -> Callable[[torch.Tensor], np.ndarray]:
-        ref_spectrum = self.spectra(reference)
+    def correlate(self, query_spectra: torch.Tensor, reference_spectra: torch.Tensor
+                  ) -> np.ndarray:
         window = torch.from_numpy(self.window).to(self.device)
         rows, cols = window % self.shape[0], window % self.shape[1]
-
-        def correlate(query_spectra: torch.Tensor) -> np.ndarray:
-            full = torch.fft.irfft2(query_spectra.conj() * ref_spectrum, s=self.shape)
-            return full[:, rows][:, :, cols].cpu().numpy()
-
-        return correlate
+        full = torch.fft.irfft2(query_spectra.conj() * reference_spectra, s=self.shape)
+        return full[:, rows][:, :, cols].cpu().numpy()
