@@ -216,9 +216,10 @@ class SearchParams:
         columns; numpy and scipy's FFTs release the GIL. While a search runs on several
         threads BLAS is held to one thread in the process (core/workers.py says why). 2 on 2
         cores: 1,500 generated references 12.4 -> 11.1 ms a query (benchmarks/bench_search.py;
-        docs/RESULTS.md, session 18); since the pairs are correlated by FFT (session 33) 1 and
-        2 take the same time there. 1 keeps the search on the calling thread (a process
-        running several searches at once).
+        docs/RESULTS.md, session 18); since the candidate pairs are scored from 2-D spectra
+        (session 33), against one thread with BLAS held to one as well: 1,500 generated 16.0
+        -> 15.0 ms, KITTI 00 15.3 -> 13.7 ms. 1 keeps the search on the calling thread (a
+        process running several searches at once).
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
         within 2 voxels for at least this fraction of the query's points; the ICP-refined pose
