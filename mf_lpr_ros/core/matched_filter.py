@@ -283,39 +283,36 @@ class SpectralBank(_ReferenceImages):
         the half spectrum)."""
         queries, positions = np.nonzero(np.asarray(allowed).T)
         plane = self._plane_spectra(prepared)
-        # (L, n, K): the candidates' row spectra transformed along y as well.
+        # (n, L, K): the candidates' row spectra transformed along y as well.
         candidates = self._contiguous(self._dft(self._bank[self._index(references)],
-                                                self.column_length).swapaxes(0, 2).swapaxes(1, 2))
+                                                self.column_length).swapaxes(1, 2))
         scores = self._empty_scores(len(queries) * self.n_shifts ** 2).reshape(
-            self.n_shifts, len(queries), self.n_shifts)
+            len(queries), self.n_shifts, self.n_shifts)
         starts = range(0, len(queries), _PAIRS_PER_CHUNK)
 
         def correlate(worker: int) -> None:
             """The pairs of every threads-th chunk, from the worker-th on."""
             for first in starts[worker:: self.workers.threads]:
                 chunk = slice(first, first + _PAIRS_PER_CHUNK)
-                product = (plane[:, self._index(queries[chunk])]
-                           * candidates[:, self._index(positions[chunk])])
-                count = product.shape[1]
-                # (di, pair, k): the correlation along y within the window, a spectrum along x.
-                along_y = self._along_y @ product.reshape(self.column_length, -1)
-                scores[:, first: first + count] = (
-                    self._interleaved(along_y).reshape(-1, 2 * self.n_freqs) @ self._inverse.T
-                ).reshape(self.n_shifts, count, self.n_shifts)
+                product = (plane[self._index(queries[chunk])]
+                           * candidates[self._index(positions[chunk])])
+                # (pair, di, k): the correlation along y within the window, a spectrum along x.
+                along_y = self._along_y @ product
+                scores[chunk] = (self._interleaved(along_y).reshape(-1, 2 * self.n_freqs)
+                                 @ self._inverse.T).reshape(-1, self.n_shifts, self.n_shifts)
 
         self.workers.run(correlate)
-        return AllowedScores(queries, positions, scores.swapaxes(0, 1))
+        return AllowedScores(queries, positions, scores)
 
     def _plane_spectra(self, prepared: PreparedQueries) -> np.ndarray:
-        """The conjugated 2-D spectra (column_length, A, K) of the prepared queries, made once
+        """The conjugated 2-D spectra (A, column_length, K) of the prepared queries, made once
         per batch."""
         if prepared.plane_spectra is None:
             prepared.plane_spectra = self._conjugated_plane_spectra(prepared.images)
         return prepared.plane_spectra
 
     def _conjugated_plane_spectra(self, images: np.ndarray) -> np.ndarray:
-        spectra = sp_fft.rfft2(images, s=(self.column_length, self.fft_length))
-        return np.ascontiguousarray(spectra.swapaxes(0, 1).conj())
+        return sp_fft.rfft2(images, s=(self.column_length, self.fft_length)).conj()
 
     def peaks(self, computed: "np.ndarray | AllowedScores",
               columns: np.ndarray | None = None) -> np.ndarray:

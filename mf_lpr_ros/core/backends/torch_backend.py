@@ -111,8 +111,7 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
         return rows.unfold(2, height, 1).flip(2)
 
     def _conjugated_plane_spectra(self, images: torch.Tensor) -> torch.Tensor:
-        spectra = torch.fft.rfft2(images, s=(self.column_length, self.fft_length))
-        return spectra.transpose(0, 1).conj().contiguous()
+        return torch.fft.rfft2(images, s=(self.column_length, self.fft_length)).conj()
 
     def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
         return windows.reshape(self.n_freqs, -1, self.height)
