@@ -320,16 +320,17 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> np.ndarray:
     """For each angle, the flat source cell of every output cell (A, size^2) int32; size^2, one
     past the last cell, for a source outside the window."""
     centres = np.arange(size) - size / 2 + 0.5
-    x, y = np.meshgrid(centres, centres)
+    # x along columns, y along rows, broadcast rather than laid out (a set made for one call,
+    # a place's similarity, is on the query's path).
+    x, y = centres[None, None, :], centres[None, :, None]
     theta = np.deg2rad(np.asarray(angles_deg))[:, None, None]
+    cos, sin = np.cos(theta), np.sin(theta)
     # Inverse mapping: the output cell at p takes the input at R(-theta) p.
-    src_x = np.cos(theta) * x + np.sin(theta) * y
-    src_y = -np.sin(theta) * x + np.cos(theta) * y
-    cols = np.floor(src_x + size / 2).astype(np.int64)
-    rows = np.floor(src_y + size / 2).astype(np.int64)
+    cols = np.floor(cos * x + sin * y + size / 2).astype(np.int32)
+    rows = np.floor(-sin * x + cos * y + size / 2).astype(np.int32)
     inside = (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size)
-    flat = np.where(inside, rows * size + cols, size * size)
-    return flat.astype(np.int32).reshape(len(angles_deg), -1)
+    return np.where(inside, rows * size + cols, size * size).astype(np.int32, copy=False).reshape(
+        len(angles_deg), -1)
 
 
 def _angle_key(angles_deg: np.ndarray) -> tuple[float, ...]:

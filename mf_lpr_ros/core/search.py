@@ -721,8 +721,11 @@ class MatchedFilterIndex:
         w = self.params.unoccupied_weight
         correlation = self._local_correlation
         angle_sets = [global_angle + self.local_offsets for _, global_angle in jobs]
-        reference_images = np.stack([weighted(self.map.occupancy(reference), w, self.covered)
-                                     for reference, _ in jobs])
+        # A place's similarity aligns one reference at three yaws: its image and spectrum once.
+        references, image_of_job = np.unique([reference for reference, _ in jobs],
+                                             return_inverse=True)
+        reference_images = np.stack([weighted(self.map.occupancy(int(reference)), w,
+                                              self.covered) for reference in references])
         reference_spectra = correlation.spectra(reference_images)
 
         def correlate(job_of_pair: np.ndarray, angle_of_pair: np.ndarray) -> np.ndarray:
@@ -733,11 +736,13 @@ class MatchedFilterIndex:
             query_spectra = correlation.stack([
                 self._turned_query[float(angle_sets[job][angle])].spectrum
                 for job, angle in zip(job_of_pair, angle_of_pair)])
-            return correlation.correlate(query_spectra, reference_spectra[job_of_pair])
+            return correlation.correlate(query_spectra,
+                                         reference_spectra[image_of_job[job_of_pair]])
 
         surfaces = self._coarse_to_fine(correlate, len(jobs), len(self.local_offsets))
-        return [self._local_peak(reference, angles, surface, image) for (reference, _), angles,
-                surface, image in zip(jobs, angle_sets, surfaces, reference_images)]
+        return [self._local_peak(reference, angles, surface, reference_images[image])
+                for (reference, _), angles, surface, image in zip(jobs, angle_sets, surfaces,
+                                                                  image_of_job)]
 
     def _local_peak(self, reference: int, angles: np.ndarray, surface: np.ndarray,
                     reference_image: np.ndarray) -> "_LocalPeak":
