@@ -17,14 +17,12 @@ import functools
 import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator, Sequence, TypeVar
+from typing import Callable, Iterator
 
 import numpy as np
 
 from mf_lpr_ros.optional import available, require
 
-T = TypeVar("T")
-R = TypeVar("R")
 # Multiply-adds below which a share of a product is not worth handing to another thread (~0.1 ms
 # of one core; the prefilter's product at 1500 references, 1.6 M, runs faster on one).
 _MIN_WORK_PER_THREAD = 2_000_000
@@ -57,20 +55,6 @@ class Workers:
                 other.exception()
         for other in others:
             other.result()
-
-    def map(self, function: Callable[[T], R], items: Sequence[T]) -> list[R]:
-        """[function(item) for item in items], the items dealt out among the threads."""
-        results: list = [None] * len(items)
-
-        def apply(worker: int) -> None:
-            for k in range(worker, len(items), self.threads):
-                results[k] = function(items[k])
-
-        if len(items) > 1:
-            self.run(apply)
-        else:
-            apply(0)
-        return results
 
     def matmul(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """left @ right, right's columns (its last axis) split among the threads."""

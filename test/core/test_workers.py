@@ -7,18 +7,17 @@ from mf_lpr_ros.core import workers as workers_module
 from mf_lpr_ros.core.workers import Workers
 
 
-def test_map_keeps_the_order_of_its_items_and_uses_every_thread():
-    seen_threads = set()
+def test_run_hands_each_worker_number_to_its_own_thread():
+    seen = {}
     barrier = threading.Barrier(2, timeout=10)
 
-    def square(item: int) -> int:
-        seen_threads.add(threading.get_ident())
-        if item < 2:
-            barrier.wait()  # the first two items can only pass together: on two threads
-        return item * item
+    def work(worker: int) -> None:
+        barrier.wait()  # both workers can only pass together: on two threads
+        seen[worker] = threading.get_ident()
 
-    assert Workers(2).map(square, list(range(7))) == [k * k for k in range(7)]
-    assert len(seen_threads) == 2
+    Workers(2).run(work)
+    assert sorted(seen) == [0, 1]
+    assert len(set(seen.values())) == 2
 
 
 def test_run_reraises_a_workers_error():
