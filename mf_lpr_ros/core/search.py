@@ -336,17 +336,25 @@ class MatchedFilterIndex:
         else:
             searched = np.arange(n_refs)
         prefilter_done = time.perf_counter()
-        prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
-        volume = None
+        volume, candidates = None, None
         if self.spectra_on_demand:
             # Column k is searched[k].
             self.bank.refill(self._low_in_order(searched))
             columns = np.arange(len(searched))
         else:
             columns = searched
+        if allowed is not None:
+            # The query turned to its headings, and their spectra, beside the candidates'
+            # spectra: one thread each.
+            prepared, candidates = self._workers.each(
+                lambda: self.bank.prepare_queries(
+                    self._turned_and_pooled(occupancy, headings), pairs=True),
+                lambda: self.bank.candidate_spectra(columns))
+        else:
+            prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
         if prefiltered or self.spectra_on_demand:
             scores, volume = self.bank.best_of_subset(prepared, columns, self.search.chunk_size,
-                                                      allowed)
+                                                      allowed, candidates)
         else:
             scores = self.bank.best_per_reference(prepared, n_refs, self.search.chunk_size)
         scores = self._normalised(scores, self.bank.norms[columns])

@@ -17,7 +17,7 @@ import functools
 import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
@@ -26,6 +26,8 @@ from mf_lpr_ros.optional import available, require
 # Multiply-adds below which a share of a product is not worth handing to another thread (~0.1 ms
 # of one core; the prefilter's product at 1500 references, 1.6 M, runs faster on one).
 _MIN_WORK_PER_THREAD = 2_000_000
+
+T = TypeVar("T")
 
 
 class Workers:
@@ -55,6 +57,18 @@ class Workers:
                 other.exception()
         for other in others:
             other.result()
+
+    def each(self, *tasks: Callable[[], T]) -> list[T]:
+        """Every task's result, in order, task i run by worker i % threads (all of them by the
+        calling thread when there is one)."""
+        results: list = [None] * len(tasks)
+
+        def work(worker: int) -> None:
+            for index in range(worker, len(tasks), self.threads):
+                results[index] = tasks[index]()
+
+        self.run(work)
+        return results
 
     def matmul(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """left @ right, right's columns (its last axis) split among the threads."""

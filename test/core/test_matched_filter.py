@@ -181,3 +181,26 @@ def test_allowed_pairs_score_as_the_full_search_and_the_others_not_at_all(rng):
     np.testing.assert_allclose(chunked, best)
     nothing, pairs = bank.best_of_subset(prepared, subset[3:4], allowed=allowed[3:4])
     assert nothing[0] == -np.inf and len(pairs.positions) == 0
+
+
+def test_allowed_pairs_score_alike_from_candidate_spectra_made_beforehand(rng):
+    bank, _, queries, _ = random_bank(rng)
+    subset = np.array([7, 0, 4, 8, 2])
+    allowed = rng.random((len(subset), len(queries))) < 0.5
+    allowed[:, 0] = True
+    made_here = bank.best_of_subset(bank.prepare_queries(queries), subset, allowed=allowed)
+    candidates = bank.candidate_spectra(subset)
+    assert candidates.shape == (len(subset), bank.column_length, bank.n_freqs)
+    for chunk_size in (256, 2):
+        # Sliced per chunk: reference k's spectra stay with reference k.
+        prepared = bank.prepare_queries(queries, pairs=True)
+        assert prepared.plane_spectra is not None
+        best, pairs = bank.best_of_subset(prepared, subset, chunk_size, allowed, candidates)
+        np.testing.assert_array_equal(best, made_here[0])
+    np.testing.assert_array_equal(
+        bank.best_of_subset(bank.prepare_queries(queries), subset, 256, allowed,
+                            candidates)[1].scores, made_here[1].scores)
+    # Another reference's spectra in its place change its scores: they are what is used.
+    swapped = candidates[[1, 0, 2, 3, 4]]
+    moved, _ = bank.best_of_subset(bank.prepare_queries(queries), subset, 256, allowed, swapped)
+    assert not np.allclose(moved[:2], made_here[0][:2])

@@ -20,6 +20,23 @@ def test_run_hands_each_worker_number_to_its_own_thread():
     assert len(set(seen.values())) == 2
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_each_gives_every_tasks_result_in_order_two_threads_running_side_by_side(threads):
+    barrier = threading.Barrier(2, timeout=10)
+
+    def task(index: int):
+        if threads == 2 and index < 2:
+            barrier.wait()  # the first two tasks can only pass together: on two threads
+        return index, threading.get_ident()
+
+    results = Workers(threads).each(*(lambda index=index: task(index) for index in range(5)))
+    assert [index for index, _ in results] == [0, 1, 2, 3, 4]
+    if threads == 1:
+        assert {ident for _, ident in results} == {threading.get_ident()}
+    if threads == 2:
+        assert results[0][1] == results[2][1] == threading.get_ident() != results[1][1]
+
+
 def test_run_reraises_a_workers_error():
     def fail_on_the_second(worker: int) -> None:
         if worker == 1:
