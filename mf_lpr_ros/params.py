@@ -212,13 +212,15 @@ class SearchParams:
         GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
         PyTorch is installed and sees a CUDA device, else numpy.
     threads: threads that share one query's work (numpy backend; torch has its own): the
-        global stage's candidate pairs, chunk by chunk, and its large products split by
-        columns; numpy and scipy's FFTs release the GIL. While a search runs on several
-        threads BLAS is held to one thread in the process (core/workers.py says why). 2 on 2
-        cores: 1,500 generated references 12.4 -> 11.1 ms a query (benchmarks/bench_search.py;
-        docs/RESULTS.md, session 18); since the candidate pairs are scored from 2-D spectra
-        (session 33), against one thread with BLAS held to one as well: 1,500 generated 16.0
-        -> 15.0 ms, KITTI 00 15.3 -> 13.7 ms. 1 keeps the search on the calling thread (a
+        global stage's candidate pairs, chunk by chunk, the query's turning and 2-D spectra
+        beside the candidates' spectra, and its large products split by columns; numpy and
+        scipy's FFTs release the GIL. While a search runs on several threads BLAS is held to
+        one thread in the process (core/workers.py says why). 2 on 2 cores: 1,500 generated
+        references 12.4 -> 11.1 ms a query (benchmarks/bench_search.py; docs/RESULTS.md,
+        session 18); since the candidate pairs are scored from 2-D spectra (session 33),
+        against one thread with BLAS held to one as well: 1,500 generated 16.0 -> 15.0 ms,
+        KITTI 00 15.3 -> 13.7 ms; the turning beside the candidates' spectra (session 34) took
+        KITTI 00's global stage 5.61 -> 4.98 ms. 1 keeps the search on the calling thread (a
         process running several searches at once).
     verify_fitness: geometric verification for the live nodes. When > 0, a match is accepted
         only if ICP (open3d) against the reference's stored cloud finds a correspondence
