@@ -171,8 +171,10 @@ class MatchedFilterIndex:
         self.local_offsets = np.arange(-n_side, n_side + 1) * step
         # Every rotation table a query can need (the global set and one local set per global
         # angle), now: memory is then fixed from the first query of a long run.
-        prepare_rotations(self.params.size, [self.global_angles] +
-                          [angle + self.local_offsets for angle in self.global_angles])
+        angle_sets = [self.global_angles] + [angle + self.local_offsets
+                                             for angle in self.global_angles]
+        prepare_rotations(self.params.size, angle_sets)
+        self._prepared_angle_sets = {tuple(angles.tolist()) for angles in angle_sets}
         size = self.params.low_size
         self.spectra_on_demand = search.reference_spectra == "on_demand" or (
             search.reference_spectra == "auto" and search.prefilter_top_k > 0
@@ -213,8 +215,6 @@ class MatchedFilterIndex:
         self._positions: cKDTree | None = None
         # place_similarity by reference: (the view it was measured from, the figure).
         self._place_similarity: dict[int, tuple[int, float]] = {}
-        # False while a place's similarity is measured (_rotated).
-        self._tables_kept = True
         # What became of the prefilter cache beside the map file (on demand only).
         self.prefilter_cache_status = "not used"
         self.sync()
@@ -559,22 +559,22 @@ class MatchedFilterIndex:
             return math.nan
         query_state = self._turned_query, self._query_seen
         self._turned_query, self._query_seen = {}, self._seen(occupancy)
-        self._tables_kept = False
         try:
             similarity = max(peak.confidence for peak in self._local_peaks(
                 occupancy, [(reference, yaw) for yaw in yaws]))
         finally:
             self._turned_query, self._query_seen = query_state
-            self._tables_kept = True
         self._place_similarity[reference] = (neighbour, similarity)
         return similarity
 
     def _rotated(self, image: np.ndarray, angles: np.ndarray, only: np.ndarray | None
                  ) -> np.ndarray:
-        """rotate_occupancy, its tables kept unless this is a place's similarity being
-        measured: the local stage's angle sets are otherwise the global headings' (made once,
-        prepare_rotations), and a set for every place measured would fill the cache."""
-        return rotate_occupancy(image, angles, only, cached=self._tables_kept)
+        """rotate_occupancy, from the tables prepared at start-up when angles is one of their
+        sets (the global headings, or a global heading's local angles). Any other set, a
+        place's similarity's own yaws, gets a table for this call alone: one kept for every
+        place measured would fill the cache."""
+        cached = tuple(np.atleast_1d(angles).tolist()) in self._prepared_angle_sets
+        return rotate_occupancy(image, angles, only, cached=cached)
 
     def _elsewhere(self, searched: np.ndarray, reference: int) -> np.ndarray:
         """Positions in searched of the references farther than distinct_radius_m from
