@@ -63,6 +63,34 @@ def test_a_place_measures_as_alike_when_the_maps_headings_are_wrong(world, route
     assert _rotation_sources.cache_info().misses == tables_made
 
 
+def test_a_query_turns_by_the_prepared_tables_and_a_place_by_its_own(world, route_index,
+                                                                       monkeypatch):
+    """Every set of angles a query turns to has its table from start-up (the global headings
+    and each one's local angles); a yaw a place's similarity is measured at that is none of
+    them gets a table made for that call alone."""
+    from mf_lpr_ros.core import search as search_module
+
+    prepared = {tuple(route_index.global_angles.tolist())} | {
+        tuple((heading + route_index.local_offsets).tolist())
+        for heading in route_index.global_angles}
+    calls = []
+    original = search_module.rotate_occupancy
+
+    def recording(image, angles, only=None, *, cached=True):
+        calls.append((tuple(np.atleast_1d(angles).tolist()) in prepared, cached))
+        return original(image, angles, only, cached=cached)
+
+    monkeypatch.setattr(search_module, "rotate_occupancy", recording)
+    points, _ = scan_world(world, 5.1, 0.6, 0.5, np.random.default_rng(3))
+    route_index.query(describe_points(points, PARAMS))
+    assert calls and all(is_prepared and cached for is_prepared, cached in calls)
+    calls.clear()
+    route_index._place_similarity.clear()
+    route_index.place_similarity(2)
+    assert all(is_prepared == cached for is_prepared, cached in calls)
+    assert any(not cached for _, cached in calls)
+
+
 def test_a_weak_match_carries_its_places_similarity_and_nothing_else_changes(world):
     """Measured for a match under min_confidence only (here every match is), inside the query,
     without disturbing it: the match is the same as with the relative test off."""
