@@ -276,7 +276,7 @@ class TurnedPooling:
                  unoccupied_weight: float, covered: np.ndarray | None) -> None:
         self.n_angles, self.low = len(angles_deg), size // factor
         self.factor, self.unoccupied_weight, self.covered = factor, unoccupied_weight, covered
-        sources = _rotation_sources(size, _angle_key(angles_deg))
+        sources = _rotation_sources(size, rotation_key(angles_deg))
         rows, cols = np.divmod(np.arange(size * size), size)
         block = (rows // factor) * self.low + cols // factor
         landed = sources < size * size
@@ -333,15 +333,19 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> np.ndarray:
         len(angles_deg), -1)
 
 
-def _angle_key(angles_deg: np.ndarray) -> tuple[float, ...]:
+def rotation_key(angles_deg: np.ndarray) -> tuple[float, ...]:
+    """The key of a set of angles in the cache of rotation tables."""
     return tuple(float(a) for a in np.atleast_1d(angles_deg))
 
 
-def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> None:
+def prepare_rotations(size: int, angle_sets: list[np.ndarray]) -> frozenset[tuple[float, ...]]:
     """Compute the rotation tables of these angle sets now (they are cached, at most 256 sets):
-    a long-running search then allocates nothing new for rotations."""
-    for angles in angle_sets:
-        _rotation_sources(size, _angle_key(angles))
+    a long-running search then allocates nothing new for rotations. Returns the sets' keys
+    (rotation_key)."""
+    keys = frozenset(rotation_key(angles) for angles in angle_sets)
+    for key in keys:
+        _rotation_sources(size, key)
+    return keys
 
 
 def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
@@ -358,12 +362,12 @@ def rotate_occupancy(occupancy: np.ndarray, angles_deg: np.ndarray,
     cells = np.zeros(size * size + 1, dtype=bool)
     cells[:-1] = occupancy.ravel()
     if cached:
-        sources = _rotation_sources(size, _angle_key(angles_deg))
+        sources = _rotation_sources(size, rotation_key(angles_deg))
         sources = sources if only is None else sources[only]
     else:
         # Made for this call alone: only the angles it turns to (~0.4 ms an angle).
         wanted = np.atleast_1d(angles_deg) if only is None else np.atleast_1d(angles_deg)[only]
-        sources = _rotation_sources.__wrapped__(size, _angle_key(wanted))
+        sources = _rotation_sources.__wrapped__(size, rotation_key(wanted))
     return np.take(cells, sources).reshape(-1, size, size)
 
 

@@ -50,72 +50,14 @@ class AllowedScores:
         self.queries, self.positions, self.scores = queries, positions, scores
 
 
-class _ReferenceImages(NumpyArrays):
-    """What every bank keeps: the references' spectra (_bank, one reference per index of its
-    _REFERENCE_AXIS), their images' norms (_norms) and how many are filled (_count). A bank
-    makes its storage (_new_bank) and its references' spectra in that layout (_spectra)."""
-
-    _REFERENCE_AXIS = 0
-    _bank: np.ndarray
-    _norms: np.ndarray
-    _count: int
-
-    def _start_empty(self, capacity: int) -> None:
-        self._bank = self._new_bank(max(capacity, 1))
-        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
-        self._count = 0
-
-    def append(self, images: np.ndarray) -> None:
-        """Add references, (n, H, W) float32."""
-        images = np.asarray(images, dtype=np.float32)
-        spectra = self._spectra(images)
-        start, stop = self._count, self._count + len(images)
-        self._reserve(stop)
-        self._bank[self._references(start, stop)] = self._from_host(spectra)
-        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
-        self._count = stop
-
-    def refill(self, images: np.ndarray) -> None:
-        """Replace every reference by images, keeping the storage."""
-        self._count = 0
-        self.append(images)
-
-    def _references(self, start: int, stop: int) -> tuple[slice, ...]:
-        """The index of references [start, stop) in the storage."""
-        return (slice(None),) * self._REFERENCE_AXIS + (slice(start, stop),)
-
-    def _reserve(self, needed: int) -> None:
-        """Room for needed references, growing by doubling (the filled ones kept)."""
-        capacity = self._bank.shape[self._REFERENCE_AXIS]
-        if needed <= capacity:
-            return
-        new_capacity = max(needed, 2 * capacity)
-        filled = self._references(0, self._count)
-        bank = self._new_bank(new_capacity)
-        bank[filled] = self._bank[filled]
-        norms = np.zeros(new_capacity, dtype=np.float32)
-        norms[: self._count] = self._norms[: self._count]
-        self._bank, self._norms = bank, norms
-
-    def __len__(self) -> int:
-        return self._count
-
-    @property
-    def norms(self) -> np.ndarray:
-        """L2 norm of every reference image."""
-        return self._norms[: self._count]
-
-    @property
-    def nbytes(self) -> int:
-        return self._nbytes(self._bank) + self._norms.nbytes
-
-
-class SpectralBank(_ReferenceImages):
+class SpectralBank(NumpyArrays):
     """Reference images prepared once for windowed correlation against many queries.
 
     Storage is (capacity, K, H) complex64: for each reference and x-frequency k the spectra of
     its rows, so that the candidates of a query are gathered as whole blocks. The products
     read it as (K, H, references), which BLAS takes as a transposed operand without a copy.
+    Beside it the bank keeps its images' norms and how many references are filled; the storage
+    grows by doubling.
     """
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
@@ -133,6 +75,50 @@ class SpectralBank(_ReferenceImages):
         self._along_y = _windowed_column_inverse(self.column_length, max_shift)
         self._operator = np.empty(0, dtype=np.complex64)
         self.workers = workers or Workers()
+
+    def _start_empty(self, capacity: int) -> None:
+        self._bank = self._new_bank(max(capacity, 1))
+        self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
+        self._count = 0
+
+    def append(self, images: np.ndarray) -> None:
+        """Add references, (n, H, W) float32."""
+        images = np.asarray(images, dtype=np.float32)
+        spectra = self._spectra(images)
+        start, stop = self._count, self._count + len(images)
+        self._reserve(stop)
+        self._bank[start:stop] = self._from_host(spectra)
+        self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
+        self._count = stop
+
+    def refill(self, images: np.ndarray) -> None:
+        """Replace every reference by images, keeping the storage."""
+        self._count = 0
+        self.append(images)
+
+    def _reserve(self, needed: int) -> None:
+        """Room for needed references, growing by doubling (the filled ones kept)."""
+        capacity = self._bank.shape[0]
+        if needed <= capacity:
+            return
+        new_capacity = max(needed, 2 * capacity)
+        bank = self._new_bank(new_capacity)
+        bank[: self._count] = self._bank[: self._count]
+        norms = np.zeros(new_capacity, dtype=np.float32)
+        norms[: self._count] = self._norms[: self._count]
+        self._bank, self._norms = bank, norms
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def norms(self) -> np.ndarray:
+        """L2 norm of every reference image."""
+        return self._norms[: self._count]
+
+    @property
+    def nbytes(self) -> int:
+        return self._nbytes(self._bank) + self._norms.nbytes
 
     def _spectra(self, images: np.ndarray) -> np.ndarray:
         """(n, K, H) row spectra of images (n, H, W)."""
@@ -296,12 +282,9 @@ class SpectralBank(_ReferenceImages):
         two matrix products over a chunk of pairs (along y, then along x as a real inverse of
         the half spectrum)."""
         queries, positions = np.nonzero(np.asarray(allowed).T)
+        plane = self._plane_spectra(prepared)
         if candidates is None:
-            # The two transforms side by side (~0.7 ms each at 1500 references).
-            plane, candidates = self.workers.each(lambda: self._plane_spectra(prepared),
-                                                  lambda: self.candidate_spectra(references))
-        else:
-            plane = self._plane_spectra(prepared)
+            candidates = self.candidate_spectra(references)
         scores = self._empty_scores(len(queries) * self.n_shifts ** 2).reshape(
             len(queries), self.n_shifts, self.n_shifts)
         starts = range(0, len(queries), _PAIRS_PER_CHUNK)

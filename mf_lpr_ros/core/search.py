@@ -21,6 +21,7 @@ from mf_lpr_ros.core.descriptor import (
     pooled_weights,
     prepare_rotations,
     rotate_occupancy,
+    rotation_key,
     turns_with_sensor,
     weighted,
 )
@@ -171,10 +172,9 @@ class MatchedFilterIndex:
         self.local_offsets = np.arange(-n_side, n_side + 1) * step
         # Every rotation table a query can need (the global set and one local set per global
         # angle), now: memory is then fixed from the first query of a long run.
-        angle_sets = [self.global_angles] + [angle + self.local_offsets
-                                             for angle in self.global_angles]
-        prepare_rotations(self.params.size, angle_sets)
-        self._prepared_angle_sets = {tuple(angles.tolist()) for angles in angle_sets}
+        self._prepared_angle_sets = prepare_rotations(
+            self.params.size, [self.global_angles] + [angle + self.local_offsets
+                                                      for angle in self.global_angles])
         size = self.params.low_size
         self.spectra_on_demand = search.reference_spectra == "on_demand" or (
             search.reference_spectra == "auto" and search.prefilter_top_k > 0
@@ -573,8 +573,8 @@ class MatchedFilterIndex:
         sets (the global headings, or a global heading's local angles). Any other set, a
         place's similarity's own yaws, gets a table for this call alone: one kept for every
         place measured would fill the cache."""
-        cached = tuple(np.atleast_1d(angles).tolist()) in self._prepared_angle_sets
-        return rotate_occupancy(image, angles, only, cached=cached)
+        return rotate_occupancy(image, angles, only,
+                                cached=rotation_key(angles) in self._prepared_angle_sets)
 
     def _elsewhere(self, searched: np.ndarray, reference: int) -> np.ndarray:
         """Positions in searched of the references farther than distinct_radius_m from
