@@ -105,6 +105,22 @@ def test_weights_and_pooling():
     assert low[1, 1] == pytest.approx(-0.15)
 
 
+@pytest.mark.parametrize("unoccupied_weight", [-0.3, -0.15, -0.05, 0.0])
+def test_weights_are_exactly_one_the_unoccupied_weight_or_zero(unoccupied_weight):
+    # Exact, not approximate: occupied cells must weigh 1.0 to the bit for any weight (an
+    # arithmetic w + (1 - w) * occupancy gives 0.99999994 at -0.3).
+    rng = np.random.default_rng(7)
+    occupancy, covered = rng.random((3, 20, 20)) < 0.3, rng.random((20, 20)) < 0.7
+    w = np.float32(unoccupied_weight)
+    image = weighted(occupancy, unoccupied_weight)
+    assert image.dtype == np.float32
+    assert np.array_equal(image, np.where(occupancy, np.float32(1.0), w))
+    footprinted = weighted(occupancy, unoccupied_weight, covered)
+    expected = np.where(occupancy & covered, np.float32(1.0), np.where(covered, w, 0))
+    assert np.array_equal(footprinted, expected)
+    assert not np.signbit(footprinted[:, ~covered]).any()
+
+
 @pytest.mark.parametrize("factor", [1, 2, 3])
 def test_pooled_weights_equal_pooling_the_weights(factor):
     occupancy = np.random.default_rng(factor).random((5, 12, 12)) < 0.3
