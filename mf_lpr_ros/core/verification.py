@@ -25,7 +25,7 @@ revisit are published too, on the same evidence as the ones after them.
 
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
 fail distinctiveness alone: such a match is published when it agrees with a confirmed candidate
-within consistency_window_m of travel, earlier or later. Distinctiveness asks whether another
+within consistency_vouch_window_m of travel, earlier or later. Distinctiveness asks whether another
 place looks as alike; once odometry and an independently confirmed closure put the query there,
 a match that lands within consistency_tolerance_m of where they predict is that place, however
 alike another looks. Only confirmed candidates vouch, never a vouched match, so agreement
@@ -34,6 +34,7 @@ cannot creep along a road from one vouched match to the next.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -122,6 +123,9 @@ class OdometryConsistency:
         self.travelled_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self._candidates: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
+        # Confirmed candidates in the vouch window, in the order of their travel (one
+        # confirmed late is older than those confirmed before it).
+        self._anchors: list[_Candidate] = []
         self._awaiting_vouch: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
 
     def advance(self, odometry: np.ndarray) -> None:
@@ -130,10 +134,15 @@ class OdometryConsistency:
         if self._last_odometry is not None:
             self.travelled_m += float(np.hypot(*(odometry[:2] - self._last_odometry[:2])))
         self._last_odometry = odometry
-        window = self.search.consistency_window_m
-        for kept in (self._candidates, self._awaiting_vouch):
+        search = self.search
+        for kept, window in ((self._candidates, search.consistency_window_m),
+                             (self._awaiting_vouch, search.consistency_vouch_window_m)):
             while kept and self.travelled_m - kept[0].travelled_m > window:
                 kept.popleft()
+        first_kept = bisect.bisect_left(
+            self._anchors, self.travelled_m - search.consistency_vouch_window_m,
+            key=lambda anchor: anchor.travelled_m)
+        del self._anchors[: max(first_kept, len(self._anchors) - MATCHES_KEPT)]
 
     def _agreeing(self, earlier, later, min_separation_m: float) -> np.ndarray:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
@@ -178,6 +187,8 @@ class OdometryConsistency:
         if current.confirmed:
             newly_confirmed.append(current)
         confirmed = [c.key for c in newly_confirmed if c is not current]
+        for anchor in newly_confirmed:
+            bisect.insort(self._anchors, anchor, key=lambda kept: kept.travelled_m)
         if self.search.consistency_vouch:
             for anchor in newly_confirmed:
                 confirmed.extend(self._vouch_from(anchor))
@@ -195,13 +206,12 @@ class OdometryConsistency:
         return vouched
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None) -> bool:
-        """Whether a confirmed candidate in the window agrees with this match; when none does,
-        it is kept in case a later confirmed candidate will."""
+        """Whether a confirmed candidate in the vouch window agrees with this match; when none
+        does, it is kept in case a later confirmed candidate will."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False)
-        confirmed = [c for c in self._candidates if c.confirmed]
-        if confirmed and self._agreeing(confirmed, match, 0.0).any():
+        if self._anchors and self._agreeing(self._anchors, match, 0.0).any():
             return True
         self._awaiting_vouch.append(match)
         return False

@@ -332,7 +332,7 @@ def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window
     verify_fitness, or a travel window shorter than the 9 m (it then waits)."""
     def verdict_after_a_confirmed_revisit(change: str):
         search = SearchParams(consistency_min_support=2, consistency_vouch=change != "vouch off",
-                              consistency_window_m=6.0 if change == "window" else 30.0,
+                              consistency_vouch_window_m=6.0 if change == "window" else 30.0,
                               verify_fitness=0.6 if change == "icp" else 0.0)
         verifier = MatchVerifier(search, min_score=2.0 if change == "min_score" else 0.0)
         odometry = _drive(12)
@@ -354,6 +354,40 @@ def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window
     expected = {"vouch off": "distinctiveness", "min_score": "min_score", "icp": "ICP fitness",
                 "window": AWAITING_VOUCH}[change]
     assert expected in verdict.reason
+
+
+@pytest.mark.parametrize("vouch_window_m", [30.0, 60.0])
+def test_a_vouch_reaches_its_own_window_while_support_keeps_the_consistency_window(
+        vouch_window_m):
+    """A revisit confirmed on its first 4 matches, 45 m without a match, then a right but
+    indistinct match and a distinct one. The indistinct one is vouched for only when the vouch
+    window reaches 45 m; the distinct one is never supported from that far (support keeps
+    consistency_window_m). The same holds backwards: a match waiting 45 m before a revisit is
+    confirmed is vouched for late only within the vouch window."""
+    search = SearchParams(consistency_min_support=2, consistency_window_m=30.0,
+                          consistency_vouch_window_m=vouch_window_m)
+    odometry = _drive(36)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    near = np.array([0.2, -0.1, 0.01])
+    forward = MatchVerifier(search)
+    for odo, pose in zip(odometry[:4], truth[:4]):
+        forward.verify(_match(pose + near), odo)
+    for odo in odometry[4:34]:                         # 45 m without a match
+        forward.verify(None, odo)
+    indistinct = forward.verify(_match(truth[34] + near, **DOUBTS["indistinct"]), odometry[34])
+    distinct = forward.verify(_match(truth[35] + near), odometry[35])
+    assert indistinct.accepted is (vouch_window_m == 60.0)
+    assert distinct.support == 0 and not distinct.accepted
+
+    backward = MatchVerifier(search)
+    waiting = backward.verify(_match(truth[0] + near, **DOUBTS["indistinct"]), odometry[0],
+                              key="waiting")
+    assert waiting.may_be_confirmed and not waiting.accepted
+    for odo in odometry[1:31]:
+        backward.verify(None, odo)
+    confirms = [key for odo, pose in zip(odometry[31:], truth[31:])
+                for key in backward.verify(_match(pose + near), odo).confirms]
+    assert ("waiting" in confirms) is (vouch_window_m == 60.0)
 
 
 def test_support_expires_after_the_travel_window():
