@@ -220,7 +220,7 @@ def weighted(occupancy: np.ndarray, unoccupied_weight: float,
     """Occupancy as matched-filter weights (float32): 1 occupied, w unoccupied, and 0 outside
     the covered cells (a footprint; None covers all)."""
     # Two 0/1 images, one scaled by w and added: ~6x faster than np.where, and exact for any
-    # w (each cell adds w or 1 to a zero), where 1 + (1 - w) * occupancy is not.
+    # w (each cell adds w or 1 to a zero), where w + (1 - w) * occupancy is not.
     if covered is None:
         occupied, empty = occupancy, ~occupancy
     else:
