@@ -266,10 +266,12 @@ class SearchParams:
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
     consistency_vouch, consistency_vouch_window_m: a confirmed closure vouches for the matches
-        within consistency_vouch_window_m of it on the path that fail min_distinctiveness alone
-        and agree with it (as above, without the separation): they are published, on time or
-        late. Distinctiveness guards against a look-alike place; a match that lands where
-        odometry and an independently confirmed closure put the query is not one. Only
+        within consistency_vouch_window_m of it on the path that fail min_distinctiveness alone,
+        or consistency_min_support alone (a closure their own agreement helped confirm does not
+        count), and agree with it (as above, without the separation): they are published, on
+        time or late. Distinctiveness guards against a look-alike place, support against a
+        one-off; a match that lands where odometry and an independently confirmed closure put
+        the query is neither. Only
         confirmed candidates vouch, so agreement cannot creep along a road from one vouched
         match to the next. A weak match (under min_confidence) is never vouched for: its pose
         is less precise, and on held-out data a vouched weak match's pose lay 3 m off

@@ -24,12 +24,14 @@ it then: a pose graph takes a closure late as well as on time). So the first mat
 revisit are published too, on the same evidence as the ones after them.
 
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
-fail distinctiveness alone: such a match is published when it agrees with a confirmed candidate
-within consistency_vouch_window_m of travel, earlier or later. Distinctiveness asks whether another
-place looks as alike; once odometry and an independently confirmed closure put the query there,
-a match that lands within consistency_tolerance_m of where they predict is that place, however
-alike another looks. Only confirmed candidates vouch, never a vouched match, so agreement
-cannot creep along a road from one vouched match to the next.
+fail distinctiveness alone, or odometry consistency alone (a candidate that found too few
+agreeing ones): such a match is published when it agrees with a confirmed candidate within
+consistency_vouch_window_m of travel, earlier or later. Distinctiveness asks whether another
+place looks as alike, support whether the match repeats; once odometry and an independently
+confirmed closure put the query there, a match that lands within consistency_tolerance_m of
+where they predict is that place. Independently: a closure that a candidate's own agreement
+helped confirm does not vouch for it. Only confirmed candidates vouch, never a vouched match,
+so agreement cannot creep along a road from one vouched match to the next.
 """
 
 from __future__ import annotations
@@ -102,6 +104,11 @@ class _Candidate:
     key: Any
     support: int
     confirmed: bool
+    published: bool = False
+    # The serials of the candidates it counted for and was counted by (serials, not the
+    # candidates: links would keep every candidate of a long run alive).
+    serial: int = -1
+    linked: set[int] = field(default_factory=set)
 
 
 class OdometryConsistency:
@@ -126,6 +133,7 @@ class OdometryConsistency:
         # Confirmed candidates in the vouch window, in the order of their travel (one
         # confirmed late is older than those confirmed before it).
         self._anchors: list[_Candidate] = []
+        self._serials = 0
         self._awaiting_vouch: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
 
     def advance(self, odometry: np.ndarray) -> None:
@@ -171,13 +179,17 @@ class OdometryConsistency:
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
-        current = _Candidate(odometry, estimate, self.travelled_m, key, 0, False)
+        self._serials += 1
+        current = _Candidate(odometry, estimate, self.travelled_m, key, 0, False,
+                             serial=self._serials)
         agree = (self._agreeing(self._candidates, current, self.min_separation_m)
                  if self._candidates else [])
         agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
         newly_confirmed = []
         for candidate in agreeing:
             candidate.support += 1
+            candidate.linked.add(current.serial)
+            current.linked.add(candidate.serial)
             if not candidate.confirmed and candidate.support >= needed:
                 candidate.confirmed = True
                 newly_confirmed.append(candidate)
@@ -186,13 +198,21 @@ class OdometryConsistency:
         self._candidates.append(current)
         if current.confirmed:
             newly_confirmed.append(current)
-        confirmed = [c.key for c in newly_confirmed if c is not current]
+        confirmed = [c.key for c in newly_confirmed if c is not current and not c.published]
         for anchor in newly_confirmed:
+            anchor.published = True
             bisect.insort(self._anchors, anchor, key=lambda kept: kept.travelled_m)
+        vouched = False
         if self.search.consistency_vouch:
             for anchor in newly_confirmed:
                 confirmed.extend(self._vouch_from(anchor))
-        return count, confirmed
+            if not current.published:
+                # A closure confirmed without this candidate vouches for it, as for a match
+                # that fails distinctiveness alone; else it waits for one, as they do.
+                vouched = current.published = self._vouched_now(current)
+                if not vouched:
+                    self._awaiting_vouch.append(current)
+        return count, confirmed, vouched
 
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
@@ -200,10 +220,20 @@ class OdometryConsistency:
         if not self._awaiting_vouch:
             return []
         agree = self._agreeing(anchor, self._awaiting_vouch, 0.0)
-        vouched = [m.key for m, agrees in zip(self._awaiting_vouch, agree) if agrees]
-        self._awaiting_vouch = deque((m for m, agrees in zip(self._awaiting_vouch, agree)
-                                      if not agrees), maxlen=MATCHES_KEPT)
+        vouched = []
+        for match, agrees in zip(self._awaiting_vouch, agree):
+            if agrees and not match.published and match.serial not in anchor.linked:
+                match.published = True
+                vouched.append(match.key)
+        self._awaiting_vouch = deque((m for m in self._awaiting_vouch if not m.published),
+                                     maxlen=MATCHES_KEPT)
         return vouched
+
+    def _vouched_now(self, match: _Candidate) -> bool:
+        """Whether a confirmed candidate in the vouch window agrees with match and was
+        confirmed without it (match did not count for it)."""
+        anchors = [a for a in self._anchors if a.serial not in match.linked]
+        return bool(anchors) and bool(self._agreeing(anchors, match, 0.0).any())
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None) -> bool:
         """Whether a confirmed candidate in the vouch window agrees with this match; when none
@@ -211,7 +241,7 @@ class OdometryConsistency:
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False)
-        if self._anchors and self._agreeing(self._anchors, match, 0.0).any():
+        if self._vouched_now(match):
             return True
         self._awaiting_vouch.append(match)
         return False
@@ -286,7 +316,9 @@ class MatchVerifier:
                            fitness, awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
-        support, confirms = self.consistency.support(odometry, match.pose, key)
+        support, confirms, vouched = self.consistency.support(odometry, match.pose, key)
+        if vouched:
+            return Verdict(True, VOUCHED, fitness, support, confirms)
         if support < search.consistency_min_support:
             return Verdict(False, f"odometry consistency: {support} earlier match(es) agree, "
                                   f"consistency_min_support is {search.consistency_min_support}",

@@ -360,10 +360,10 @@ def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window
 def test_a_vouch_reaches_its_own_window_while_support_keeps_the_consistency_window(
         vouch_window_m):
     """A revisit confirmed on its first 4 matches, 45 m without a match, then a right but
-    indistinct match and a distinct one. The indistinct one is vouched for only when the vouch
-    window reaches 45 m; the distinct one is never supported from that far (support keeps
-    consistency_window_m). The same holds backwards: a match waiting 45 m before a revisit is
-    confirmed is vouched for late only within the vouch window."""
+    indistinct match and a distinct one. The distinct one finds no support that far back
+    (support keeps consistency_window_m); both are vouched for only when the vouch window
+    reaches 45 m. The same holds backwards: a match waiting 45 m before a revisit is confirmed
+    is vouched for late only within the vouch window."""
     search = SearchParams(consistency_min_support=2, consistency_window_m=30.0,
                           consistency_vouch_window_m=vouch_window_m)
     odometry = _drive(36)
@@ -377,7 +377,7 @@ def test_a_vouch_reaches_its_own_window_while_support_keeps_the_consistency_wind
     indistinct = forward.verify(_match(truth[34] + near, **DOUBTS["indistinct"]), odometry[34])
     distinct = forward.verify(_match(truth[35] + near), odometry[35])
     assert indistinct.accepted is (vouch_window_m == 60.0)
-    assert distinct.support == 0 and not distinct.accepted
+    assert distinct.support == 0 and distinct.accepted is (vouch_window_m == 60.0)
 
     backward = MatchVerifier(search)
     waiting = backward.verify(_match(truth[0] + near, **DOUBTS["indistinct"]), odometry[0],
@@ -388,6 +388,38 @@ def test_a_vouch_reaches_its_own_window_while_support_keeps_the_consistency_wind
     confirms = [key for odo, pose in zip(odometry[31:], truth[31:])
                 for key in backward.verify(_match(pose + near), odo).confirms]
     assert ("waiting" in confirms) is (vouch_window_m == 60.0)
+
+
+def test_a_closure_vouches_for_an_unsupported_match_only_if_confirmed_without_it():
+    """Distinct matches that lack support (fewer than 2 agree) are vouched for, like
+    indistinct ones, by a closure confirmed in the vouch window, but never by a closure that
+    their own agreement confirmed. A (true), B (1 m off) and C (1 m off the other way) each
+    agree with A, not with each other: C's agreement confirms A, so A vouches for neither B
+    nor C. D, 4 steps later, lacks support but agrees with A, confirmed without it: vouched,
+    and so is the match after it. The one after that is confirmed by those two; neither is
+    published a second time, and the closure it makes, confirmed without B and C, vouches for
+    them (each within the tolerance of where it puts them)."""
+    # Support from the last 6 m only: A, B and C count for one another, not for D.
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2, consistency_window_m=6.0))
+    odometry = _drive(10)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    ahead, behind = np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.0])
+    verdicts = {}
+    for key, index, offset in (("A", 0, np.zeros(3)), ("B", 1, ahead), ("C", 2, behind)):
+        verdicts[key] = verifier.verify(_match(truth[index] + offset), odometry[index], key=key)
+    assert [verdicts[k].support for k in "ABC"] == [0, 1, 1]
+    assert verdicts["C"].confirms == ["A"] and not verdicts["C"].accepted
+    assert verdicts["C"].may_be_confirmed
+    for index in (3, 4, 5, 6):
+        verifier.verify(None, odometry[index])
+    verdicts["D"] = verifier.verify(_match(truth[7]), odometry[7], key="D")
+    assert verdicts["D"].support == 0 and verdicts["D"].accepted
+    assert verdicts["D"].reason == VOUCHED
+    later = [verifier.verify(_match(truth[index]), odometry[index], key=index)
+             for index in (8, 9)]
+    assert later[0].support == 1 and later[0].reason == VOUCHED
+    assert later[1].support == 2 and later[1].reason == "accepted"
+    assert later[1].confirms == ["B", "C"]
 
 
 def test_support_expires_after_the_travel_window():
