@@ -172,10 +172,11 @@ class OdometryConsistency:
             & (yaw_gap_deg <= self.search.consistency_tolerance_deg)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
-                ) -> tuple[int, list[Any]]:
+                ) -> tuple[int, list[Any], bool]:
         """(earlier candidates agreeing with this one, keys of the earlier matches that this
-        agreement confirms or, once a candidate is confirmed, that it vouches for); the current
-        one is then remembered as a candidate."""
+        agreement confirms or, once a candidate is confirmed, that it vouches for, whether a
+        confirmed candidate vouches for this one that lacks support); the current one is then
+        remembered as a candidate."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
