@@ -129,6 +129,15 @@ class SearchParams:
     top_n: distinct references passed from the global to the local stage (n). The paper uses
         2; 3 costs one more local correlation (~2 ms) and lifts retrieval recall@1 on rotated
         KITTI 00 BEV (00_rot, BEVPlace protocol) from 0.985 to 0.991.
+    another_place_finalist: the last of the top_n finalists is the best-ranked candidate whose
+        global alignment puts the query at another place than the other finalists' (farther
+        than rerank_agreement_m, or turned by more than local_rotation_range_deg), not the
+        next view of theirs, when it scores within min_distinctiveness of the best: a rival
+        that would leave the match indistinct is aligned at full resolution. With references
+        2 m apart the top three are often views of one place; when it is a look-alike (a
+        street seen the other way round 15 m on), the true place ranked fourth never reached
+        the local stage. Not where map_headings is "unknown". Tuning suite 0.8802 -> 0.8822,
+        none false, at the same number of local alignments (docs/RESULTS.md, session 36).
     max_shift_m: largest translation between query and reference that is searched, in metres.
         The paper searches every shift of a full linear correlation; a window both bounds
         the cost and rejects alignments with little overlap.
@@ -331,6 +340,7 @@ class SearchParams:
 
     rotation_step_deg: float = 5.0
     top_n: int = 3
+    another_place_finalist: bool = True
     max_shift_m: float = 8.0
     local_rotation_range_deg: float = 6.0
     local_rotation_step_deg: float = 2.0

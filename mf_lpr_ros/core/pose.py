@@ -168,7 +168,8 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 def query_pose_from_alignment(reference_pose: np.ndarray, shift_m: np.ndarray,
                               rotation_rad: float) -> np.ndarray:
-    """Planar query pose from the reference's planar pose and the matched-filter alignment.
+    """Planar query pose from the reference's planar pose and the matched-filter alignment
+    (or poses (..., 3) from poses (..., 3), shifts (..., 2) and rotations (...)).
 
     The alignment says: the query's points rotated by rotation_rad (CCW) and moved by shift_m
     (metres, in the reference's sensor frame) land on the reference's points. So the query
@@ -176,11 +177,12 @@ def query_pose_from_alignment(reference_pose: np.ndarray, shift_m: np.ndarray,
 
         t_q = t_r + R(psi_r) shift,   psi_q = psi_r + rotation
     """
-    x_r, y_r, psi_r = reference_pose
+    reference_pose, shift_m = np.asarray(reference_pose), np.asarray(shift_m)
+    x_r, y_r, psi_r = reference_pose[..., 0], reference_pose[..., 1], reference_pose[..., 2]
     c, s = np.cos(psi_r), np.sin(psi_r)
-    dx, dy = shift_m
-    return np.array([x_r + c * dx - s * dy, y_r + s * dx + c * dy,
-                     float(wrap_angle(psi_r + rotation_rad))])
+    dx, dy = shift_m[..., 0], shift_m[..., 1]
+    return np.stack([x_r + c * dx - s * dy, y_r + s * dx + c * dy,
+                     wrap_angle(psi_r + rotation_rad)], axis=-1).astype(np.float64)
 
 
 def alignment_from_poses(reference_pose: np.ndarray, query_pose: np.ndarray

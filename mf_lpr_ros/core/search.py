@@ -34,6 +34,7 @@ from mf_lpr_ros.core.pose import (
     query_pose_from_alignment,
     reference_distance,
     rotate_covariance,
+    wrap_angle,
 )
 from mf_lpr_ros.core.prefilter_cache import cache_path, load_features, save_features
 from mf_lpr_ros.params import SearchParams
@@ -44,6 +45,9 @@ from mf_lpr_ros.progress import progress_bar
 _CURVATURE_TO_VARIANCE = 0.1
 _MIN_CONFIDENCE_FOR_COVARIANCE = 0.05
 _REPORTED_CANDIDATES = 5
+# How far down the global ranking another_place_finalist looks for another place: with
+# references 2 m apart one place's views fill the first ~8 (KITTI 00).
+_RANKED_FOR_ANOTHER_PLACE = 12
 _EXPANDED_LEADERS = 16
 # search.reference_spectra "auto": spectra in memory up to this many references (~0.9 GB).
 ON_DEMAND_ABOVE = 50_000
@@ -358,22 +362,29 @@ class MatchedFilterIndex:
         else:
             scores = self.bank.best_per_reference(prepared, n_refs, self.search.chunk_size)
         scores = self._normalised(scores, self.bank.norms[columns])
-        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES), len(searched))
+        n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES,
+                           _RANKED_FOR_ANOTHER_PLACE if self.search.another_place_finalist
+                           else 0), len(searched))
         order = np.argpartition(-scores, n_ranked - 1)[:n_ranked]
         order = order[np.argsort(-scores[order], kind="stable")]
         ranked = searched[order]
         global_done = time.perf_counter()
 
-        def local_peaks(positions: np.ndarray) -> list[_LocalPeak]:
+        def locate(positions: np.ndarray) -> np.ndarray:
+            """The global stage's best alignment of searched[positions] (bank.locate rows)."""
+            return (self.bank.peaks(volume, positions) if volume is not None
+                    else self.bank.locate(prepared, columns[positions],
+                                          None if allowed is None else allowed[positions]))
+
+        def local_peaks(positions: np.ndarray, located: np.ndarray | None = None
+                        ) -> list[_LocalPeak]:
             """The local stage on searched[positions], each at its global heading."""
-            located = (self.bank.peaks(volume, positions) if volume is not None
-                       else self.bank.locate(prepared, columns[positions],
-                                             None if allowed is None else allowed[positions]))
+            located = locate(positions) if located is None else located
             return self._local_peaks(occupancy, [
                 (int(reference), float(self.global_angles[headings[int(row[0])]]))
                 for reference, row in zip(searched[positions], located)])
 
-        peaks = local_peaks(order[: self.search.top_n])
+        peaks = local_peaks(*self._finalists(order, scores, searched, headings, locate))
         peaks.sort(key=lambda peak: -peak.score)
         finalists = peaks
         result = self._result(peaks[0], ranked)
@@ -412,6 +423,60 @@ class MatchedFilterIndex:
                              "local": (time.perf_counter() - global_done) * 1e3}
         result.searched = searched if prefiltered else None
         return result
+
+    def _finalists(self, order: np.ndarray, scores: np.ndarray, searched: np.ndarray,
+                   headings: np.ndarray, locate: Callable[[np.ndarray], np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The positions (in searched) the local stage aligns, and their global alignments when
+        located already: the top_n best-ranked; with another_place_finalist, the last of them
+        is instead the best-ranked candidate after the first top_n - 1 whose alignment puts the
+        query at another place than theirs, when one scores within min_distinctiveness of the
+        best (a rival that would leave the match indistinct) among the first
+        _RANKED_FOR_ANOTHER_PLACE. Not where the map's headings are unknown: an alignment puts
+        the query nowhere in the map frame there, and the finalists are what a nearer view is
+        reported from (_nearest_by_distances)."""
+        top_n = self.search.top_n
+        best = float(scores[order[0]]) if len(order) else 0.0
+        rivals = int(np.count_nonzero(
+            scores[order[top_n - 1:]] >= (1.0 - self.search.min_distinctiveness) * best))
+        if (not self.search.another_place_finalist or self.search.map_headings == "unknown"
+                or top_n < 2 or best <= 0 or rivals < 2):
+            return order[:top_n], None
+        eligible = order[: top_n - 1 + rivals]
+        # Located top_n at a time: where the whole volume is not at hand (an exhaustive
+        # search), each costs a correlation at every heading.
+        located = locate(eligible[:top_n])
+        while True:
+            elsewhere = np.flatnonzero(self._at_another_place(
+                searched[eligible[: len(located)]], located, headings, top_n - 1))
+            if len(elsewhere) or len(located) == len(eligible):
+                break
+            located = np.concatenate([located, locate(
+                eligible[len(located): len(located) + top_n])])
+        chosen = np.append(np.arange(top_n - 1), elsewhere[0] if len(elsewhere) else top_n - 1)
+        return eligible[chosen], located[chosen]
+
+    def _at_another_place(self, references: np.ndarray, located: np.ndarray,
+                          headings: np.ndarray, first: int) -> np.ndarray:
+        """(len(references),) bool: the global alignment of each reference (located rows)
+        puts the query at another place than those of the first `first` do: farther than
+        rerank_agreement_m, or turned by more than local_rotation_range_deg (which the local
+        stage would not search)."""
+        rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
+        cos, sin = np.cos(rotation), np.sin(rotation)
+        query_x, query_y = self._query_offset
+        turned_offset = np.stack([cos * query_x - sin * query_y, sin * query_x + cos * query_y],
+                                 axis=1)
+        # located rows are (query, di, dj, score): di along y, dj along x, in pooled cells.
+        shift_m = (located[:, [2, 1]] * (self.params.pool * self.params.voxel_size)
+                   + turned_offset - self._map_offset)
+        implied = query_pose_from_alignment(planar(self.map.poses[references]), shift_m,
+                                            rotation)
+        apart = np.hypot(*(implied[:, None, :2] - implied[None, :first, :2]).transpose(2, 0, 1))
+        turned = np.abs(wrap_angle(implied[:, None, 2] - implied[None, :first, 2]))
+        same = ((apart <= self.search.rerank_agreement_m)
+                & (turned <= np.radians(self.search.local_rotation_range_deg)))
+        return ~same.any(axis=1)
 
     def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray,
                           window: float | None = None) -> np.ndarray | None:

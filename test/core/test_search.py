@@ -145,6 +145,38 @@ def test_finalists_at_one_heading_turn_the_query_once(world, monkeypatch):
     assert 0 < sum(turned) <= n_angles
 
 
+def test_the_last_finalist_is_another_place_than_the_others(world):
+    # Three views of the query's place filed 200 m away (a look-alike street, as far as the
+    # map can tell) outrank the true place's one view, 3.5 m off. Top_n 3 by rank aligns the
+    # look-alike three times; another_place_finalist spends the third alignment on the true
+    # place. Not where the map's headings are unknown: no alignment says where the query is.
+    reference_map = ReferenceMap(PARAMS)
+    for i, x in enumerate((0.0, 2.0, -2.0)):
+        points, pose = scan_world(world, x, 0, 0, np.random.default_rng(i))
+        pose[0, 3] += 200.0
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose, i)
+    points, pose = scan_world(world, 3.5, 0, 0, np.random.default_rng(3))
+    reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=3), pose, 3)
+    points, _ = scan_world(world, 0.3, 0.2, 0.05, np.random.default_rng(9))
+    query = describe_points(points, PARAMS)
+
+    def finalists(another_place, map_headings="known", min_distinctiveness=0.15):
+        match = MatchedFilterIndex(reference_map, SearchParams(
+            top_n=3, map_headings=map_headings, another_place_finalist=another_place,
+            min_distinctiveness=min_distinctiveness)).query(query)
+        return match, {h.reference_index for h in match.hypotheses}
+
+    by_rank, aligned = finalists(False)
+    assert aligned == {0, 1, 2} and by_rank.candidates[3] == 3
+    _, aligned = finalists(True)
+    assert 3 in aligned and len(aligned & {0, 1, 2}) == 2
+    _, aligned = finalists(True, "unknown")
+    assert aligned == {0, 1, 2}
+    # Only a rival that would leave the match indistinct takes the place of a view.
+    _, aligned = finalists(True, min_distinctiveness=0.01)
+    assert aligned == {0, 1, 2}
+
+
 @pytest.mark.parametrize("n_angles", [7, 11])
 def test_the_local_stage_finds_a_smooth_peak_at_any_angle_from_part_of_them(synthetic_map,
                                                                             n_angles):
@@ -393,6 +425,22 @@ def _heading_errors(count: int) -> np.ndarray:
     """Headings off by 30-170 degrees each: a map whose yaws are not its views' (BEVPlace's
     rotated copies, references tagged with a position alone)."""
     return np.random.default_rng(3).uniform(np.radians(30), np.radians(170), count)
+
+
+def test_query_poses_from_a_batch_of_alignments_are_each_alignments_pose():
+    rng = np.random.default_rng(4)
+    references = np.c_[rng.uniform(-30, 30, (6, 2)), rng.uniform(-np.pi, np.pi, 6)]
+    shifts, rotations = rng.uniform(-8, 8, (6, 2)), rng.uniform(-np.pi, np.pi, 6)
+    batch = query_pose_from_alignment(references, shifts, rotations)
+    assert batch.shape == (6, 3)
+    for row, reference, shift, rotation in zip(batch, references, shifts, rotations):
+        single = query_pose_from_alignment(reference, shift, rotation)
+        assert single.shape == (3,)
+        np.testing.assert_allclose(row, single)
+        # The alignment the pose came from is recovered from it.
+        recovered_shift, recovered_rotation = alignment_from_poses(reference, single)
+        np.testing.assert_allclose(recovered_shift, shift, atol=1e-9)
+        assert abs(wrap_angle(recovered_rotation - rotation)) < 1e-9
 
 
 def test_two_alignments_of_one_query_give_the_distance_between_their_references():
