@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from mf_lpr_ros.cli.common import (
@@ -35,6 +36,8 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     reference_map.save(args.out)
     if "auto" in reference_map.metadata:
         print(reference_map.metadata["auto"]["choice"])
+    if "single_scan_warning" in reference_map.metadata:
+        print(f"warning: {reference_map.metadata['single_scan_warning']}", file=sys.stderr)
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
           f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
     return 0

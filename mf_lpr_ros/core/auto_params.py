@@ -173,6 +173,35 @@ def resolve_for_sequence(config: Config, sequence) -> tuple[Config, SensorProfil
     return auto_config(clouds, config, orientations)
 
 
+def single_scan_warning(profile: SensorProfile, params: DescriptorParams) -> str | None:
+    """What to tell a user whose named preset describes, one scan at a time, a sensor that auto
+    gives submaps (a narrow or sparse one: one of its scans sees too little of a place to tell
+    it apart; the held-out Mid-360 campus loop: recall@1 0.867 at `default`, 0.990 at `auto`);
+    None when the descriptor has a submap window or the sensor needs none."""
+    if params.submap_m > 0 or not needs_submaps(profile):
+        return None
+    narrow = profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG
+    measured = (f"a {profile.horizontal_fov_deg:.0f}-degree field of view" if narrow else
+                f"{profile.occupied_voxels:.0f} occupied 1 m voxels a scan, under "
+                f"{SPARSE_OCCUPIED_VOXELS:.0f}")
+    return (f"these scans look {'narrow' if narrow else 'sparse'} ({measured}, measured on "
+            f"{profile.n_scans} scans) but are described one at a time (descriptor.submap_m "
+            f"0): preset auto, or livox, describes each from the scans of its last "
+            f"{AUTO_SUBMAP_M:g} m of odometry, which such a sensor needs to tell places apart")
+
+
+def single_scan_warning_for_sequence(config: Config, sequence) -> str | None:
+    """single_scan_warning on SAMPLE_SCANS scans of sequence, for a config that is not auto and
+    describes single scans (None otherwise, and for sources of density images)."""
+    if config.auto or config.descriptor.submap_m > 0:
+        return None
+    scans = list(sequence.iter_scans(sample_indices(len(sequence))))
+    if not scans or any(scan.points is None for scan in scans):
+        return None
+    clouds, orientations = profile_sequence_scans(scans)
+    return single_scan_warning(measure_sensor(clouds, orientations), config.descriptor)
+
+
 def map_metadata(profile: SensorProfile, params: DescriptorParams) -> dict:
     """What a map built with preset auto records about the choice."""
     return {"preset": "auto", "sensor_profile": profile.to_dict(),

@@ -5,8 +5,16 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.auto_params import SAMPLE_SCANS, auto_config, map_metadata
+from mf_lpr_ros.core.auto_params import (
+    SAMPLE_SCANS,
+    auto_config,
+    map_metadata,
+    measure_sensor,
+    single_scan_warning,
+)
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import (
     DescribedScan,
@@ -27,6 +35,9 @@ class MapBuilder:
     With preset auto (config.auto) and a new map, the first auto_params.SAMPLE_SCANS scans are
     held back until the descriptor is derived from them (auto_choice then says what was
     chosen), and then described like every later scan; an existing map keeps its parameters.
+    A named preset that describes single scans measures the first SAMPLE_SCANS scans the same
+    way, and single_scan_warning then says (once) when the sensor looks like one that needs
+    submaps.
     Reference clouds are kept as core.references.keeps_clouds says (a search that verifies by
     ICP needs them).
     Every scan offered joins the submap window (core.submap) when the descriptor has one, so a
@@ -46,6 +57,9 @@ class MapBuilder:
         self.keep_clouds = not site and (keeps_clouds(config.search, keep_clouds) or (
             reference_map is not None and reference_map.has_reference_clouds))
         self.auto_choice: str | None = None
+        self.single_scan_warning: str | None = None
+        self._sampled: list[PairedScan] | None = (
+            [] if not config.auto and config.descriptor.submap_m <= 0 else None)
         self.rejected_while_held = 0
         self._held: list[PairedScan] | None = None
         if reference_map is None:
@@ -77,7 +91,26 @@ class MapBuilder:
         if self._held is not None:
             self._held.append(scan)
             return self.derive_auto() if len(self._held) >= SAMPLE_SCANS else None
+        if self._sampled is not None:
+            self._sample(scan)
         return self._offer(scan)
+
+    def _sample(self, scan: PairedScan) -> None:
+        """Keeps the scan for the single-scan check until SAMPLE_SCANS are kept, then checks."""
+        if not np.isfinite(scan.pose).all():
+            return
+        self._sampled.append(scan)
+        if len(self._sampled) < SAMPLE_SCANS:
+            return
+        sampled, self._sampled = self._sampled, None
+        try:
+            profile = measure_sensor([kept.points for kept in sampled],
+                                     [kept.pose[:3, :3] for kept in sampled])
+        except InvalidCloudError:
+            return
+        self.single_scan_warning = single_scan_warning(profile, self.config.descriptor)
+        if self.single_scan_warning is not None:
+            self.map.metadata["single_scan_warning"] = self.single_scan_warning
 
     def derive_auto(self) -> int | None:
         """Derive the descriptor from the held-back scans (preset auto) and add them; the last

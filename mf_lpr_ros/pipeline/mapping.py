@@ -8,7 +8,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mf_lpr_ros.config import Config
-from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
+from mf_lpr_ros.core.auto_params import (
+    map_metadata,
+    resolve_for_sequence,
+    single_scan_warning_for_sequence,
+)
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import (
     DescribedScan,
@@ -73,6 +77,9 @@ def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
     metadata = {"source": sequence.name, "spacing_m": resolved.spacing_m}
     if profile is not None:
         metadata["auto"] = map_metadata(profile, resolved.descriptor)
+    warning = single_scan_warning_for_sequence(resolved, sequence)
+    if warning is not None:
+        metadata["single_scan_warning"] = warning
     return ReferencePlan(indices, resolved, sequence.name, getattr(sequence, "frame_id", ""),
                          metadata)
 

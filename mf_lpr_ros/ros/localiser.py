@@ -126,6 +126,9 @@ class LocaliserLogic(LidarNodeMixin):
         reference_map = self._open_map()
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
+        if "single_scan_warning" in reference_map.metadata:
+            self.get_logger().warning(
+                f"map built where {reference_map.metadata['single_scan_warning']}")
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
         try:
             self.localiser = Localiser(reference_map, config, mode=settings.mode,

@@ -71,6 +71,7 @@ class MapBuilderNode(LidarNode):
                                   sensor_frame_id=inputs.sensor_frame_id,
                                   frame_id=inputs.map_frame_id or "map")
         self._auto_reported = False
+        self._single_scan_reported = False
         self.poses = PoseBuffer(max_gap_s=inputs.max_pose_gap_s)
         self.synchroniser = ScanPoseSynchroniser(self.poses, inputs.extrinsic)
         self._next_index = int(self.builder.map.source_indices.max()) + 1 \
@@ -170,6 +171,9 @@ class MapBuilderNode(LidarNode):
         return f"{descriptor.voxel_size} m{window}"
 
     def _report_auto(self) -> None:
+        if self.builder.single_scan_warning is not None and not self._single_scan_reported:
+            self._single_scan_reported = True
+            self.get_logger().warning(self.builder.single_scan_warning)
         if self.builder.auto_choice is not None and not self._auto_reported:
             self._auto_reported = True
             self.get_logger().info(self.builder.auto_choice)

@@ -76,13 +76,15 @@ def route(n_scans: int, radius_m: float = 30.0, lateral_offset_m: float = 0.0,
     return np.stack([x, y, heading], axis=1)
 
 
-def write_kitti_sequence(folder: Path, world: World, trajectory: np.ndarray, seed: int) -> None:
-    """A KITTI odometry-style folder (velodyne/*.bin, poses.txt, times.txt) of scans."""
+def write_kitti_sequence(folder: Path, world: World, trajectory: np.ndarray, seed: int,
+                         dropout: float = 0.1) -> None:
+    """A KITTI odometry-style folder (velodyne/*.bin, poses.txt, times.txt) of scans, each
+    return dropped with probability dropout."""
     rng = np.random.default_rng(seed)
     (folder / "velodyne").mkdir(parents=True, exist_ok=True)
     poses = []
     for index, (x, y, yaw) in enumerate(trajectory):
-        points, pose = scan_world(world, x, y, yaw, rng)
+        points, pose = scan_world(world, x, y, yaw, rng, dropout=dropout)
         records = np.zeros((len(points), 4), dtype="<f4")
         records[:, :3] = points
         records.tofile(folder / "velodyne" / f"{index:06d}.bin")

@@ -14,6 +14,7 @@ from mf_lpr_ros.core.auto_params import (
     auto_descriptor,
     describe_choice,
     measure_sensor,
+    single_scan_warning,
 )
 from mf_lpr_ros.core.descriptor import voxel_size_for_density
 from mf_lpr_ros.core.pose import pose_matrix
@@ -143,6 +144,45 @@ def test_build_map_with_auto_records_its_choice(world, tmp_path):
     reference_map.save(path)
     from mf_lpr_ros.core.map_store import ReferenceMap
     assert ReferenceMap.load(path).metadata["auto"]["choice"] == choice["choice"]
+
+
+def test_a_named_preset_describing_single_scans_of_a_sparse_sensor_says_so(world, tmp_path):
+    # Offline: the map records the warning (build-map prints it, the localiser logs it).
+    write_kitti_sequence(tmp_path / "sparse", world, route(20), seed=3, dropout=SPARSE_DROPOUT)
+    write_kitti_sequence(tmp_path / "dense", world, route(20), seed=3)
+    sparse, dense = open_source(tmp_path / "sparse"), open_source(tmp_path / "dense")
+    warning = build_map(sparse, preset("default"), progress=False).metadata[
+        "single_scan_warning"]
+    assert "look sparse" in warning and "preset auto" in warning
+    assert "single_scan_warning" not in build_map(sparse, preset("livox"),
+                                                  progress=False).metadata
+    assert "single_scan_warning" not in build_map(dense, preset("default"),
+                                                  progress=False).metadata
+    # Live: said once the first SAMPLE_SCANS scans are measured, and kept in the map.
+    rng = np.random.default_rng(2)
+    for dropout, expected in ((SPARSE_DROPOUT, True), (0.1, False)):
+        builder = MapBuilder(preset("default"), None)
+        for index, (x, y, yaw) in enumerate(route(SAMPLE_SCANS)):
+            assert builder.single_scan_warning is None
+            points, pose = scan_world(world, x, y, yaw, rng, dropout=dropout)
+            builder.offer(PairedScan(index, float(index), points, pose))
+        assert (builder.single_scan_warning is not None) == expected
+        assert ("single_scan_warning" in builder.map.metadata) == expected
+
+
+def test_the_single_scan_warning_names_what_it_measured():
+    def profile(occupied: float, fov_deg: float) -> SensorProfile:
+        return SensorProfile(n_scans=12, occupied_voxels=occupied, ground_below_sensor_m=1.7,
+                             horizontal_fov_deg=fov_deg, heading_deg=0.0, tilt_spread_deg=0.5,
+                             range_p95_m=40.0, range_held_m=20.0)
+
+    single = DescriptorParams()
+    assert "70-degree field of view" in single_scan_warning(profile(3000.0, 70.0), single)
+    assert "look narrow" in single_scan_warning(profile(3000.0, 70.0), single)
+    assert "700 occupied 1 m voxels" in single_scan_warning(profile(700.0, 360.0), single)
+    assert single_scan_warning(profile(3000.0, 360.0), single) is None
+    assert single_scan_warning(profile(700.0, 360.0),
+                               dataclasses.replace(single, submap_m=3.0)) is None
 
 
 def test_density_images_cannot_be_measured(tmp_path):
