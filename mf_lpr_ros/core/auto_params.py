@@ -181,7 +181,7 @@ def single_scan_warning(profile: SensorProfile, params: DescriptorParams) -> str
     if params.submap_m > 0 or not needs_submaps(profile):
         return None
     narrow = profile.horizontal_fov_deg < FULL_CIRCLE_BELOW_DEG
-    measured = (f"a {profile.horizontal_fov_deg:.0f}-degree field of view" if narrow else
+    measured = (f"a field of view of {profile.horizontal_fov_deg:.0f} degrees" if narrow else
                 f"{profile.occupied_voxels:.0f} occupied 1 m voxels a scan, under "
                 f"{SPARSE_OCCUPIED_VOXELS:.0f}")
     return (f"these scans look {'narrow' if narrow else 'sparse'} ({measured}, measured on "

@@ -177,7 +177,7 @@ def test_the_single_scan_warning_names_what_it_measured():
                              range_p95_m=40.0, range_held_m=20.0)
 
     single = DescriptorParams()
-    assert "70-degree field of view" in single_scan_warning(profile(3000.0, 70.0), single)
+    assert "field of view of 70 degrees" in single_scan_warning(profile(3000.0, 70.0), single)
     assert "look narrow" in single_scan_warning(profile(3000.0, 70.0), single)
     assert "700 occupied 1 m voxels" in single_scan_warning(profile(700.0, 360.0), single)
     assert single_scan_warning(profile(3000.0, 360.0), single) is None
