@@ -192,14 +192,19 @@ def single_scan_warning(profile: SensorProfile, params: DescriptorParams) -> str
 
 def single_scan_warning_for_sequence(config: Config, sequence) -> str | None:
     """single_scan_warning on SAMPLE_SCANS scans of sequence, for a config that is not auto and
-    describes single scans (None otherwise, and for sources of density images)."""
+    describes single scans (None otherwise, for sources of density images, and where the
+    samples hold no finite point: the build itself says what is wrong with such scans)."""
     if config.auto or config.descriptor.submap_m > 0:
         return None
     scans = list(sequence.iter_scans(sample_indices(len(sequence))))
     if not scans or any(scan.points is None for scan in scans):
         return None
     clouds, orientations = profile_sequence_scans(scans)
-    return single_scan_warning(measure_sensor(clouds, orientations), config.descriptor)
+    try:
+        profile = measure_sensor(clouds, orientations)
+    except InvalidCloudError:
+        return None
+    return single_scan_warning(profile, config.descriptor)
 
 
 def map_metadata(profile: SensorProfile, params: DescriptorParams) -> dict:
