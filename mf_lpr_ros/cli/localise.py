@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,6 +20,9 @@ def cmd_localise(args: argparse.Namespace) -> int:
     from mf_lpr_ros.pipeline.localise import localise_sequence
 
     reference_map = ReferenceMap.load(args.map)
+    if "single_scan_warning" in reference_map.metadata:
+        print(f"warning: map built where {reference_map.metadata['single_scan_warning']}",
+              file=sys.stderr)
     search = config_from_arguments(args).search
     if args.min_confidence is not None:
         search = replace(search, min_confidence=args.min_confidence)

@@ -164,13 +164,16 @@ def test_preset_auto_builds_localises_and_evaluates(traversals, tmp_path, capsys
     assert report["recall_at_1_corrected"] >= 0.9
 
 
-def test_build_map_warns_when_a_sparse_sensor_is_described_one_scan_at_a_time(world, tmp_path,
-                                                                               capsys):
+def test_build_map_and_localise_warn_when_a_sparse_sensor_is_described_one_scan_at_a_time(
+        world, tmp_path, capsys):
     # 97 % of the returns dropped: a sparse sensor's scans, which the preset describes singly.
     write_kitti_sequence(tmp_path / "sparse", world, route(20), seed=4, dropout=0.97)
     assert main(["build-map", str(tmp_path / "sparse"), "--out", str(tmp_path / "s.mfmap"),
                  "--preset", "default", "--quiet"]) == 0
     assert "warning: these scans look sparse" in capsys.readouterr().err
+    assert main(["localise", str(tmp_path / "s.mfmap"), str(tmp_path / "sparse"), "--out",
+                 str(tmp_path / "s.csv"), "--quiet"]) == 0
+    assert "warning: map built where these scans look sparse" in capsys.readouterr().err
     assert main(["build-map", str(tmp_path / "sparse"), "--out", str(tmp_path / "l.mfmap"),
                  "--preset", "livox", "--quiet"]) == 0
     assert "warning" not in capsys.readouterr().err
