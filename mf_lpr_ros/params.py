@@ -275,24 +275,22 @@ class SearchParams:
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
     consistency_vouch, consistency_vouch_window_m: a confirmed closure vouches for the matches
-        within consistency_vouch_window_m of it on the path that fail min_distinctiveness alone,
-        or consistency_min_support alone (a closure their own agreement helped confirm does not
-        count), and agree with it (as above, without the separation): they are published, on
-        time or late. Distinctiveness guards against a look-alike place, support against a
-        one-off; a match that lands where odometry and an independently confirmed closure put
-        the query is neither. Only
-        confirmed candidates vouch, so agreement cannot creep along a road from one vouched
-        match to the next. A weak match (under min_confidence) is never vouched for: its pose
-        is less precise, and on held-out data a vouched weak match's pose lay 3 m off
-        (core/verification.py; docs/RESULTS.md, session 20). The vouch window is wider than
-        the support window: a vouch asks for one closure confirmed on distinct matches, not a
-        run of candidates, and its reach is bounded by how far the odometry carries that
-        closure's pose within the tolerance. At 1 % drift, 0.5 degrees per 100 m and a
-        closure's own 0.2 m and 0.3-degree error, a right match 60 m on is predicted within
-        ~1.3 m, inside the 1.5 m tolerance; 100 m on, ~2.2 m. 60 (30 before) raised the tuning
-        suite's published recall (mean 0.8759 -> 0.8795; simulated town 0.950 -> 0.992) with
-        no false closure, and with the odometry drifted by 2 % and 1 degree per 100 m no
-        vouched pose lay 3 m off (docs/RESULTS.md, session 35).
+        within consistency_vouch_window_m of it on the path that fail min_distinctiveness alone, or
+        consistency_min_support alone (a closure their own agreement helped confirm does not count),
+        and agree with it (as above, without the separation): they are published, on time or late.
+        Distinctiveness guards against a look-alike place, support against a one-off; a match that
+        lands where odometry and an independently confirmed closure put the query is neither. Only
+        confirmed candidates vouch, so agreement cannot creep along a road from one vouched match to
+        the next. A weak match (under min_confidence) is never vouched for: its pose is less
+        precise, and on held-out data a vouched weak match's pose lay 3 m off (core/verification.py;
+        docs/RESULTS.md, session 20). The vouch window is wider than the support window: a vouch
+        asks for one closure confirmed on distinct matches, not a run of candidates, and its reach
+        is bounded by how far the odometry carries that closure's pose within the tolerance. At 1 %
+        drift, 0.5 degrees per 100 m and a closure's own 0.2 m and 0.3-degree error, a right match
+        60 m on is predicted within ~1.3 m, inside the 1.5 m tolerance; 100 m on, ~2.2 m. 60 (30
+        before) raised the tuning suite's published recall (mean 0.8759 -> 0.8795; simulated town
+        0.950 -> 0.992) with no false closure, and with the odometry drifted by 2 % and 1 degree per
+        100 m no vouched pose lay 3 m off (docs/RESULTS.md, session 35).
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too

@@ -463,13 +463,9 @@ class MatchedFilterIndex:
         rerank_agreement_m, or turned by more than local_rotation_range_deg (which the local
         stage would not search)."""
         rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
-        cos, sin = np.cos(rotation), np.sin(rotation)
-        query_x, query_y = self._query_offset
-        turned_offset = np.stack([cos * query_x - sin * query_y, sin * query_x + cos * query_y],
-                                 axis=1)
         # located rows are (query, di, dj, score): di along y, dj along x, in pooled cells.
-        shift_m = (located[:, [2, 1]] * (self.params.pool * self.params.voxel_size)
-                   + turned_offset - self._map_offset)
+        shift_m = self._shift_m(
+            located[:, [2, 1]] * (self.params.pool * self.params.voxel_size), rotation)
         implied = query_pose_from_alignment(planar(self.map.poses[references]), shift_m,
                                             rotation)
         apart = np.hypot(*(implied[:, None, :2] - implied[None, :first, :2]).transpose(2, 0, 1))
@@ -477,6 +473,16 @@ class MatchedFilterIndex:
         same = ((apart <= self.search.rerank_agreement_m)
                 & (turned <= np.radians(self.search.local_rotation_range_deg)))
         return ~same.any(axis=1)
+
+    def _shift_m(self, peak_m: np.ndarray, rotation: np.ndarray | float) -> np.ndarray:
+        """The alignment's shift in metres (..., 2) from a correlation peak's offset in metres
+        (..., 2) at rotation (radians, ...): the sensors' offsets from their cells' centres
+        corrected, the query's turned with it."""
+        cos, sin = np.cos(rotation), np.sin(rotation)
+        query_x, query_y = self._query_offset
+        turned = np.stack([cos * query_x - sin * query_y, sin * query_x + cos * query_y],
+                          axis=-1)
+        return peak_m + turned - self._map_offset
 
     def _allowed_headings(self, low_query: np.ndarray, searched: np.ndarray,
                           window: float | None = None) -> np.ndarray | None:
@@ -950,9 +956,7 @@ class MatchedFilterIndex:
         shift_cells = np.array([peak.col - self.high_shift + offset[0],
                                 peak.row - self.high_shift + offset[1]])
         rotation = math.radians(rotation_deg)
-        turn = np.array([[math.cos(rotation), -math.sin(rotation)],
-                         [math.sin(rotation), math.cos(rotation)]])
-        shift_m = shift_cells * voxel + turn @ self._query_offset - self._map_offset
+        shift_m = self._shift_m(shift_cells * voxel, rotation)
 
         inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
         relative_covariance = np.zeros((3, 3))
