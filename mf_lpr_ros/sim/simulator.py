@@ -21,7 +21,15 @@ from mf_lpr_ros.core.pose import (
     quaternion_from_yaw,
 )
 from mf_lpr_ros.progress import progress_bar
-from mf_lpr_ros.sim.lidar import HANDHELD_MID360, HDL32, MID360, VLP16, SensorModel, cast
+from mf_lpr_ros.sim.lidar import (
+    HANDHELD_DENSE64,
+    HANDHELD_MID360,
+    HDL32,
+    MID360,
+    VLP16,
+    SensorModel,
+    cast,
+)
 from mf_lpr_ros.sim.scenes import Scene, forest_scene, moved_objects, urban_scene
 
 
@@ -112,8 +120,17 @@ def handheld_traversals(seed: int = 17, step_m: float = 0.5) -> Traversals:
                       urban.second, sway(urban.first, seed + 1), sway(urban.second, seed + 2))
 
 
+def dense_handheld_traversals(seed: int = 29, step_m: float = 1.0) -> Traversals:
+    """The urban routes of a fourth town, walked with a dense 360-degree sensor in the hand
+    (sim.lidar.HANDHELD_DENSE64), swaying as handheld_traversals' does: a sensor that needs no
+    submap, whose scans tilt."""
+    urban = urban_traversals(seed, step_m)
+    return Traversals(urban.scene, urban.second_day, HANDHELD_DENSE64, urban.first,
+                      urban.second, sway(urban.first, seed + 1), sway(urban.second, seed + 2))
+
+
 WORLDS = {"urban": urban_traversals, "forest": forest_traversals, "sparse": sparse_traversals,
-          "handheld": handheld_traversals}
+          "handheld": handheld_traversals, "dense_handheld": dense_handheld_traversals}
 
 # Bump when the worlds or the bags change: bags written under another version are rewritten.
 SIMULATION_VERSION = 2
