@@ -20,7 +20,7 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.config import preset as named_preset
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import planar, planar_error, pose_matrix
+from mf_lpr_ros.core.pose import compose_planar, planar, planar_error, pose_matrix
 from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.evaluation.protocol import revisits
@@ -267,7 +267,6 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
         back_end = graph.start(PoseGraphNode, keyframe_spacing_m=0.5) \
             if importlib.util.find_spec("gtsam") else None
         closures = graph.collect(Float64MultiArray, "loop_closure")
-        poses = graph.collect(PoseWithCovarianceStamped, "relocalisation")
         replay_bag(bag, rate=rate, node=graph.node, wait_for_subscribers=2, progress=progress,
                    topics=[sequence.cloud_topic, sequence.pose_topic])
         graph.wait_for(localiser.is_idle, 30)
@@ -282,12 +281,14 @@ def run_bag_loop_closure(bag: Path, preset: str, map_path: Path, rate: float = 1
         graph.close()
     truth = planar(sequence.poses)
     index_of = {round(s, 3): i for i, s in enumerate(sequence.stamps)}
-    by_stamp = {round(stamp_to_seconds(m.header.stamp), 3): _planar(m) for m in poses}
     translation, yaw, closed = [], [], set()
     for closure in map(decode_loop_closure, closures):
-        stamp = round(stamp_to_seconds(closure["query_stamp"]), 3)
-        query = index_of[stamp]
-        error_m, error_deg = planar_error(by_stamp[stamp], truth[query])
+        query = index_of[round(stamp_to_seconds(closure["query_stamp"]), 3)]
+        reference = index_of[round(stamp_to_seconds(closure["reference_stamp"]), 3)]
+        # The closure's own planar transform, as a back end reads it: a closure confirmed by
+        # later matches has no relocalisation pose (docs/ROS.md).
+        implied = compose_planar(truth[reference], planar(closure["reference_T_query"]))
+        error_m, error_deg = planar_error(implied, truth[query])
         translation.append(error_m)
         yaw.append(error_deg)
         closed.add(query)
