@@ -62,9 +62,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     "livox": {"descriptor": {"submap_m": 3.0, "level": True}},
     # Close-range handheld 360-degree scans (median range ~5 m, e.g. the BALM sequence).
     # Levelled with the pose's roll/pitch: a handheld sensor tilts 10 deg typically, 37 at worst.
+    # ICP verifies on top of the default distinctiveness and odometry consistency: ICP fitness
+    # alone let look-alikes through on a dense handheld sensor in a town, where they verified
+    # both (docs/RESULTS.md, session 37).
     "handheld": {"descriptor": {"voxel_size": 0.3, "level": True},
-                 "search": {"max_shift_m": 6.0, "min_confidence": 0.28, "verify_fitness": 0.68,
-                            "min_distinctiveness": 0.0, "consistency_min_support": 0},
+                 "search": {"max_shift_m": 6.0, "min_confidence": 0.28, "verify_fitness": 0.68},
                  "spacing_m": 1.0},
 }
 

@@ -12,7 +12,7 @@ from test_ros_nodes import errors, planar_of_message
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.core.pose import compose_planar, planar
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.evaluation.protocol import revisits
 from mf_lpr_ros.io.messages import stamp_to_seconds
@@ -85,14 +85,18 @@ def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph
     closed = set()
     assert len(closures) >= 5
     for closure in map(decode_loop_closure, closures):
-        query = stamp_index[round(stamp_to_seconds(closure["query_stamp"]), 3)]
+        query_stamp = round(stamp_to_seconds(closure["query_stamp"]), 3)
+        query = stamp_index[query_stamp]
         reference = stamp_index[round(stamp_to_seconds(closure["reference_stamp"]), 3)]
-        translation, yaw = errors(planar_of_message(by_stamp[round(stamp_to_seconds(
-            closure["query_stamp"]), 3)]), truth[query])
+        # A closure confirmed by later matches has no relocalisation pose of its own (ROS.md).
+        if query_stamp in by_stamp:
+            translation, yaw = errors(planar_of_message(by_stamp[query_stamp]), truth[query])
+            assert translation < 0.5 and yaw < 2.0, \
+                f"closure of scan {query} is {translation:.2f} m off"
+        implied = compose_planar(truth[reference], planar(closure["reference_T_query"]))
+        translation, yaw = errors(implied, truth[query])                # no false closure
         assert translation < 0.5 and yaw < 2.0, \
-            f"closure of scan {query} is {translation:.2f} m off"
-        implied = sequence.poses[reference] @ closure["reference_T_query"]
-        assert np.hypot(*(implied[:2, 3] - truth[query, :2])) < 0.5     # no false closure
+            f"closure of scan {query} implies a pose {translation:.2f} m off"
         closed.add(query)
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
                          EXCLUDE_RECENT_S, radius_m=3.0)
@@ -157,7 +161,10 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
     covered = [scan for scan in queries
                if np.linalg.norm(mapped - scan.pose[:2, 3], axis=1).min() <= 5.0]
     assert len(covered) >= 10
-    assert len(poses) >= 0.5 * len(covered), f"{len(poses)} of {len(covered)} relocalised"
+    # Odometry consistency publishes the first matches of a revisit once later ones agree: as
+    # closures, not as (stale) relocalisation poses.
+    accepted = len(poses) + node.counters["closures_confirmed_later"]
+    assert accepted >= 0.5 * len(covered), f"{accepted} of {len(covered)} relocalised"
 
 
 @pytest.mark.slow
