@@ -24,18 +24,25 @@ from mf_lpr_ros.core.references import (
 )
 from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import Scan, Sequence
+from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 
 def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> np.ndarray:
-    """Occupancy of a scan, from its points or its ready density image."""
+    """Occupancy of a scan, from its points or its ready density image. A scan that cannot be
+    described is named in the error: a batch of thousands stops at it."""
     if scan.density is None and scan.points is None:
         raise ValueError(f"scan {scan.index} has neither points nor a density image")
-    points = None if scan.density is not None else prepared_points(scan, params)
-    return describe_observation(params, reference=reference, stamp=scan.stamp, points=points,
-                                density=scan.density, density_pixel_m=scan.density_pixel_m)
+    try:
+        points = None if scan.density is not None else prepared_points(scan, params)
+        return describe_observation(params, reference=reference, stamp=scan.stamp,
+                                    points=points, density=scan.density,
+                                    density_pixel_m=scan.density_pixel_m)
+    except InvalidCloudError as error:
+        raise InvalidCloudError(f"scan {scan.index} (stamp {scan.stamp:.3f} s): {error}") \
+            from error
 
 
 def prepared_points(scan: Scan, params: DescriptorParams) -> np.ndarray:

@@ -5,12 +5,14 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core import search
 from mf_lpr_ros.datasets import open_source
+from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.pipeline import localise
-from mf_lpr_ros.pipeline.mapping import build_map
+from mf_lpr_ros.pipeline.mapping import build_map, describe_scan
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
@@ -43,3 +45,13 @@ def test_every_scan_is_searched_as_a_request(world, tmp_path, monkeypatch):
     errors = [outcome.translation_error_m for outcome in outcomes]
     assert np.median(errors) < 0.3, errors
     assert all(outcome.match.searched is None for outcome in outcomes)
+
+
+def test_a_scan_with_nothing_to_describe_is_named_in_the_error(world, tmp_path):
+    """A scan with no point inside the descriptor's window and height band (a sensor facing an
+    open field, a preset's band above everything it sees) stops a batch: the error says which."""
+    write_kitti_sequence(tmp_path / "first", world, route(12), seed=1)
+    banded = dataclasses.replace(preset("default").descriptor, z_min=40.0, z_max=50.0)
+    scan = next(open_source(tmp_path / "first").iter_scans([5]))
+    with pytest.raises(InvalidCloudError, match=rf"scan 5 \(stamp {scan.stamp:.3f} s\): no finite"):
+        describe_scan(scan, banded, reference=False)
