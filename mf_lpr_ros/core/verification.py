@@ -46,6 +46,7 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import compose_planar, planar_error, relative_planar
 from mf_lpr_ros.core.search import MatchResult, passes_confidence
+from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import SearchParams
 
 
@@ -271,6 +272,14 @@ class MatchVerifier:
         self.search = search
         self.min_score = min_score
         self.consistency_active = search.consistency_min_support > 0 and odometry_known
+        if self.consistency_active and submap_m >= search.consistency_window_m:
+            # Supporters lie submap_m apart as the crow flies, so farther apart in travel.
+            raise ConfigError(
+                f"odometry consistency can confirm no match: matches support each other only "
+                f"descriptor.submap_m = {submap_m:g} m apart (their submaps share no scan), and "
+                f"only within search.consistency_window_m = {search.consistency_window_m:g} m of "
+                f"travel; widen the window beyond the submap, or set "
+                f"search.consistency_min_support to 0")
         self.consistency = OdometryConsistency(
             search, max(search.consistency_min_separation_m, submap_m))
 

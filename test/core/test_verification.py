@@ -19,6 +19,7 @@ from mf_lpr_ros.core.verification import (
     MatchVerifier,
     confirmed_later,
 )
+from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.sim.synthetic import scan_world
 
@@ -239,6 +240,18 @@ def test_matches_of_overlapping_submaps_do_not_support_each_other():
     verdicts = [verifier.verify(_match(pose), odo) for odo, pose in zip(odometry, truth)]
     assert all(v.accepted for v in verdicts[4:])
     assert verdicts[-1].support == 9           # every earlier match 3 m or more back
+
+
+def test_a_submap_as_long_as_the_consistency_window_is_refused_by_name():
+    """Matches support each other only a submap apart (above), and only within the window: a
+    submap as long as the window leaves no match anything to agree with, and every match would
+    be refused for want of support (a 30 m window of a narrow sensor's scans did this)."""
+    search = SearchParams(consistency_min_support=2, consistency_window_m=30.0)
+    with pytest.raises(ConfigError, match=r"submap_m = 30 m.*consistency_window_m = 30 m"):
+        MatchVerifier(search, submap_m=30.0)
+    MatchVerifier(search, submap_m=29.0)
+    MatchVerifier(search, submap_m=30.0, odometry_known=False)
+    MatchVerifier(SearchParams(consistency_min_support=0), submap_m=30.0)
 
 
 INDISTINCT = 0.05
