@@ -205,13 +205,16 @@ def test_relocalise_service_on_the_real_bag(ros_graph, balm_bag, first_half_map)
     covered = [scan for scan in sequence.iter_scans(range(half, len(sequence)))
                if np.linalg.norm(mapped - scan.pose[:2, 3], axis=1).min() <= 2.0]
     truth = {round(scan.stamp, 3): planar(scan.pose) for scan in covered}
-    stream = iter(covered * 3)
+    # The covered scans over and over, each lap 1000 s later: stamps must keep rising (a scan
+    # older than the last is dropped), and a request may need several scans (odometry
+    # consistency) and run past the end of a lap.
+    stream = ((scan, 1000.0 * lap) for lap in range(9) for scan in covered)
     for request in range(3):
         future = client.call_async(Trigger.Request())
         while not future.done():
-            scan = next(stream)
-            stamp = seconds_to_stamp(scan.stamp + 1000.0 * request)
-            truth[round(scan.stamp + 1000.0 * request, 3)] = planar(scan.pose)
+            scan, later = next(stream)
+            stamp = seconds_to_stamp(scan.stamp + later)
+            truth[round(scan.stamp + later, 3)] = planar(scan.pose)
             odometry.publish(odometry_message(stamp, "map", "velodyne", scan.pose))
             clouds.publish(points_to_pointcloud2(scan.points, stamp, "velodyne"))
             searched = node.counters["scans_searched"]
