@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from mf_lpr_ros.evaluation.protocol import Protocol
 from mf_lpr_ros.evaluation.suite import Published, Rule, Suite
+from mf_lpr_ros.sim.simulator import SENSOR_WORLDS
 
 # BEVPlace's KITTI protocol (its own BEV images): database and query frame ranges per sequence,
 # every database frame a reference, a query counts when a database frame lies within 5 m.
@@ -63,6 +64,10 @@ _SIMULATED_WORLDS = ("urban", "forest", "sparse", "handheld", "dense_handheld")
 
 # The sparse sensors' worlds under the `livox` preset too (since session 27).
 _LIVOX_WORLDS = ("sparse", "handheld")
+
+
+# The presets a user picks for a sensor of that kind, on the suite "sensors".
+_SENSOR_PRESETS = ("auto", "default", "livox", "handheld")
 
 
 _BEVPLACE_HOLDOUT = _bevplace("holdout/kitti_bev", ("02", "05", "06"))
@@ -190,6 +195,15 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
               Rule("single", "kitti", _KITTI00_VALIDATION, ("kitti_bev/00",),
                    label="validation")) + _BEVPLACE_SPARSE_DATABASE,
           _BEVPLACE_TUNING[1]),
+    Suite("sensors",
+          "The presets auto, default, livox and handheld on simulated sensors and mounts the "
+          "tuning suite does not hold (sim.simulator.SENSOR_WORLDS: a VLP-16, a Mid-360 and a "
+          "handheld HDL-32 in the forest; an HDL-32, a 70-degree Avia, a VLP-16 0.4 m up, a "
+          "Mid-360 on a roof and a handheld VLP-16 in a town), day 2 off the grid against day "
+          "1, 5 m: a check after a default changes (no preset may publish a false closure; "
+          "auto should do what default does or better), not a set to choose defaults on",
+          tuple(Rule("simulated", name, Protocol(5.0), tuple(SENSOR_WORLDS), by_preset=True)
+                for name in _SENSOR_PRESETS)),
     Suite("shared-data",
           "The development sets of ../shared/data (the project's acceptance table): BALM "
           "handheld, HKU main building (Livox) and KITTI 00 BEV, single-sequence loop closures",

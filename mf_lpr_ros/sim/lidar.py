@@ -19,7 +19,8 @@ class SensorModel:
     non_repetitive: every sweep draws each ray's elevation anew, uniformly between the lowest
     and the highest of elevations_deg (one ray per listed elevation and azimuth column), and
     jitters its azimuth within its column, as a Livox Mid-360's rosette covers its band: no
-    rings, and no two sweeps alike."""
+    rings, and no two sweeps alike.
+    horizontal_fov_deg: the sector about the sensor's +x axis it sees (a Livox Avia: ~70)."""
 
     name: str
     elevations_deg: tuple[float, ...]
@@ -29,6 +30,7 @@ class SensorModel:
     max_range_m: float = 100.0
     mount_height_m: float = 1.8
     non_repetitive: bool = False
+    horizontal_fov_deg: float = 360.0
 
     def directions(self, rng: np.random.Generator | None = None) -> np.ndarray:
         """(R, 3) unit ray directions in the sensor frame (rng draws a non-repetitive
@@ -60,6 +62,21 @@ MID360 = SensorModel("Mid-360", tuple(np.linspace(-7.0, 52.0, 8)), azimuth_step_
 
 # The same sensor held in the hand of a walker (sim.simulator.handheld_traversals sways it).
 HANDHELD_MID360 = dataclasses.replace(MID360, name="Mid-360 (handheld)", mount_height_m=1.3)
+
+
+# A Livox Avia as a small robot carries it: a 70-degree forward cone, +-38 degrees of
+# elevation, non-repetitive, mounted 1 m up (sim.simulator.SENSOR_WORLDS).
+AVIA = SensorModel("Avia", tuple(np.linspace(-38.0, 38.0, 30)), azimuth_step_deg=0.5,
+                   dropout=0.1, max_range_m=80.0, mount_height_m=1.0, non_repetitive=True,
+                   horizontal_fov_deg=70.0)
+
+
+# Spinning sensors mounted otherwise than on a car: a VLP-16 on a small robot, 0.4 m up; a
+# Mid-360 on a car's roof; a VLP-16 and an HDL-32 held in the hand (their worlds sway them).
+LOW_VLP16 = dataclasses.replace(VLP16, name="VLP-16 (0.4 m up)", mount_height_m=0.4)
+ROOF_MID360 = dataclasses.replace(MID360, name="Mid-360 (roof)", mount_height_m=2.0)
+HANDHELD_VLP16 = dataclasses.replace(VLP16, name="VLP-16 (handheld)", mount_height_m=1.3)
+HANDHELD_HDL32 = dataclasses.replace(HDL32, name="HDL-32 (handheld)", mount_height_m=1.3)
 
 
 # A dense 360-degree sensor held in the hand (an Ouster OS0-64's 90-degree vertical field):
@@ -103,7 +120,12 @@ def cast(scene: Scene, sensor: SensorModel, pose: np.ndarray, rng: np.random.Gen
     hit = (distance <= sensor.max_range_m) & (rng.random(len(distance)) >= sensor.dropout)
     ranges = distance[hit] + rng.normal(0, sensor.range_noise_m, int(hit.sum()))
     points_world = origin + directions.reshape(-1, 3)[hit] * ranges[:, None]
-    return ((points_world - origin) @ pose[:3, :3]).astype(np.float32)
+    points = ((points_world - origin) @ pose[:3, :3]).astype(np.float32)
+    if sensor.horizontal_fov_deg >= 360.0:
+        return points
+    # Cast all round and cut: the sector's rays are then those of the spinning sensor.
+    azimuth_deg = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    return points[np.abs(azimuth_deg) <= sensor.horizontal_fov_deg / 2]
 
 
 def _columns_off_azimuth(directions: np.ndarray, yaw: float, step_deg: float) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,7 +20,13 @@ from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.sim.lidar import VLP16, SensorModel, _box_hits, _cylinder_hits, _sphere_hits, cast
 from mf_lpr_ros.sim.scenes import Scene, urban_scene
-from mf_lpr_ros.sim.simulator import OFF_GRID_DAY2, WORLDS, world_bags, write_bag
+from mf_lpr_ros.sim.simulator import (
+    OFF_GRID_DAY2,
+    SENSOR_WORLDS,
+    WORLDS,
+    world_bags,
+    write_bag,
+)
 
 EXACT = SensorModel("test", (-10.0, 0.0, 10.0), azimuth_step_deg=1.0, range_noise_m=0.0,
                     dropout=0.0, max_range_m=60.0)
@@ -144,6 +151,31 @@ def test_a_handheld_world_sways_and_its_odometry_carries_the_tilt(tmp_path):
         assert len(ground) > 50
         assert np.percentile(np.abs(levelled + 1.3), 90) < 0.05
         assert np.std(ground[:, 2]) > 3 * np.std(levelled)
+
+
+def test_a_narrow_sensor_sees_its_forward_cone_as_the_spinning_one_would():
+    scene = urban_scene(3)
+    pose = sensor_pose(20.0, 0.0, 0.7)
+    narrow = dataclasses.replace(EXACT, horizontal_fov_deg=70.0)
+    seen = cast(scene, narrow, pose, np.random.default_rng(4))
+    around = cast(scene, EXACT, pose, np.random.default_rng(4))
+    azimuth = np.degrees(np.arctan2(around[:, 1], around[:, 0]))
+    assert 0 < len(seen) < 0.3 * len(around)
+    assert np.array_equal(seen, around[np.abs(azimuth) <= 35.0])
+
+
+def test_the_sensors_suite_puts_sensors_where_the_tuning_worlds_have_none():
+    """Each of its worlds is a scene kind and a sensor (and a sway, for those held in the hand)
+    that no world of the tuning suite pairs, on a town or forest of its own."""
+    tuning = {name: WORLDS[name]() for name in WORLDS if name not in SENSOR_WORLDS}
+    pairs = {(world.scene.kind, world.sensor) for world in tuning.values()}
+    for name, make in SENSOR_WORLDS.items():
+        world = make()
+        assert (world.scene.kind, world.sensor) not in pairs, name
+        assert (world.first_tilt is None) == ("hand" not in name), name
+        assert not any(np.array_equal(world.scene.boxes, other.scene.boxes)
+                       and np.array_equal(world.scene.cylinders, other.scene.cylinders)
+                       for other in tuning.values()), name
 
 
 def test_the_dense_handheld_world_is_a_sensor_auto_levels_without_submaps():
