@@ -39,20 +39,20 @@ def cmd_localise(args: argparse.Namespace) -> int:
         for outcome in outcomes:
             match = outcome.match
             truth = outcome.truth if outcome.truth is not None else np.full(3, math.nan)
-            # A scan with nothing to describe has no match: its match columns stay empty.
-            matched = [] if match is None else [
-                match.reference_index, f"{reference_map.stamps[match.reference_index]:.6f}",
-                f"{match.score:.6g}", f"{match.confidence:.4f}"]
+            if match is None:
+                # A scan with nothing to describe: no match, its columns empty.
+                found, pose, stages = ["", "", "", ""], np.full(3, math.nan), ["", ""]
+            else:
+                found = [match.reference_index,
+                         f"{reference_map.stamps[match.reference_index]:.6f}",
+                         f"{match.score:.6g}", f"{match.confidence:.4f}"]
+                pose = match.pose
+                stages = [f"{match.timings_ms[stage]:.2f}" for stage in ("global", "local")]
             writer.writerow([
-                outcome.index, f"{outcome.stamp:.6f}", *(matched or [""] * 4),
-                int(outcome.verdict.accepted),
-                *(f"{v:.4f}" for v in (match.pose if match else np.full(3, math.nan))),
-                *(f"{v:.4f}" for v in truth),
+                outcome.index, f"{outcome.stamp:.6f}", *found, int(outcome.verdict.accepted),
+                *(f"{v:.4f}" for v in pose), *(f"{v:.4f}" for v in truth),
                 f"{outcome.translation_error_m:.4f}", f"{outcome.yaw_error_deg:.3f}",
-                f"{outcome.descriptor_ms:.2f}",
-                *(f"{match.timings_ms[stage]:.2f}" if match else "" for stage in
-                  ("global", "local")),
-                outcome.verdict.reason])
+                f"{outcome.descriptor_ms:.2f}", *stages, outcome.verdict.reason])
     errors = np.array([o.translation_error_m for o in outcomes])
     print(f"wrote {args.out}: {len(outcomes)} queries against {len(reference_map)} references"
           + (f"; median translation error {np.nanmedian(errors):.3f} m"

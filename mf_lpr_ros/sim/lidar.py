@@ -60,7 +60,7 @@ MID360 = SensorModel("Mid-360", tuple(np.linspace(-7.0, 52.0, 8)), azimuth_step_
                      non_repetitive=True)
 
 
-# The same sensor held in the hand of a walker (sim.simulator.handheld_traversals sways it).
+# The same sensor held in the hand of a walker (sim.simulator.WORLDS["handheld"] sways it).
 HANDHELD_MID360 = dataclasses.replace(MID360, name="Mid-360 (handheld)", mount_height_m=1.3)
 
 
@@ -80,7 +80,7 @@ HANDHELD_HDL32 = dataclasses.replace(HDL32, name="HDL-32 (handheld)", mount_heig
 
 
 # A dense 360-degree sensor held in the hand (an Ouster OS0-64's 90-degree vertical field):
-# sim.simulator.dense_handheld_traversals sways it. The generalisation issue's unseen set was
+# sim.simulator.WORLDS["dense_handheld"] sways it. The generalisation issue's unseen set was
 # such a sensor, and the `handheld` preset published false closures on it.
 HANDHELD_DENSE64 = SensorModel("64-beam (handheld)", tuple(np.linspace(-45.0, 45.0, 64)),
                                azimuth_step_deg=0.7, max_range_m=60.0, mount_height_m=1.3)

@@ -111,35 +111,11 @@ def forest_traversals(seed: int = 11, step_m: float = 0.5) -> Traversals:
     return Traversals(scene, scene, HDL32, drive(loop, step_m), second)
 
 
-def sparse_traversals(seed: int = 13, step_m: float = 0.5) -> Traversals:
-    """The urban routes of another town, walked by a robot with a sparse Mid-360-like sensor
-    mounted low (sim.lidar.MID360): one sweep holds too little of a place, a submap does."""
-    urban = urban_traversals(seed, step_m)
-    return Traversals(urban.scene, urban.second_day, MID360, urban.first, urban.second)
-
-
-def handheld_traversals(seed: int = 17, step_m: float = 0.5) -> Traversals:
-    """The urban routes of a third town, walked with the sparse sensor in the hand
-    (sim.lidar.HANDHELD_MID360): it sways in roll and pitch (sway), differently each day, and
-    the odometry carries the tilt, as a handheld LiDAR-inertial odometry's does."""
-    urban = urban_traversals(seed, step_m)
-    return Traversals(urban.scene, urban.second_day, HANDHELD_MID360, urban.first,
-                      urban.second, sway(urban.first, seed + 1), sway(urban.second, seed + 2))
-
-
-def dense_handheld_traversals(seed: int = 29, step_m: float = 1.0) -> Traversals:
-    """The urban routes of a fourth town, walked with a dense 360-degree sensor in the hand
-    (sim.lidar.HANDHELD_DENSE64), swaying as handheld_traversals' does: a sensor that needs no
-    submap, whose scans tilt."""
-    urban = urban_traversals(seed, step_m)
-    return Traversals(urban.scene, urban.second_day, HANDHELD_DENSE64, urban.first,
-                      urban.second, sway(urban.first, seed + 1), sway(urban.second, seed + 2))
-
-
 def carried(make: Callable[[int, float], Traversals], sensor: SensorModel, *, seed: int,
             step_m: float, sways: bool = False) -> Callable[[], Traversals]:
     """A world of make's (urban_traversals or forest_traversals, its own seed) seen by another
-    sensor, swaying as handheld_traversals' does when sways."""
+    sensor; when sways, held in the hand: it rolls and pitches (sway), differently each day,
+    and the odometry carries the tilt."""
     def traversals() -> Traversals:
         world = dataclasses.replace(make(seed, step_m), sensor=sensor)
         if not sways:
@@ -166,9 +142,22 @@ SENSOR_WORLDS = {
 }
 
 
-WORLDS = {"urban": urban_traversals, "forest": forest_traversals, "sparse": sparse_traversals,
-          "handheld": handheld_traversals, "dense_handheld": dense_handheld_traversals,
-          **SENSOR_WORLDS}
+WORLDS = {
+    "urban": urban_traversals,
+    "forest": forest_traversals,
+    # The urban routes of another town, walked by a robot with a sparse Mid-360-like sensor
+    # mounted low (sim.lidar.MID360): one sweep holds too little of a place, a submap does.
+    "sparse": carried(urban_traversals, MID360, seed=13, step_m=0.5),
+    # A third town, the same sensor in the hand (sim.lidar.HANDHELD_MID360): it sways in roll
+    # and pitch, differently each day, and the odometry carries the tilt, as a handheld
+    # LiDAR-inertial odometry's does.
+    "handheld": carried(urban_traversals, HANDHELD_MID360, seed=17, step_m=0.5, sways=True),
+    # A fourth town, a dense 360-degree sensor in the hand (sim.lidar.HANDHELD_DENSE64),
+    # swaying likewise: a sensor that needs no submap, whose scans tilt.
+    "dense_handheld": carried(urban_traversals, HANDHELD_DENSE64, seed=29, step_m=1.0,
+                              sways=True),
+    **SENSOR_WORLDS,
+}
 
 # Bump when the worlds or the bags change: bags written under another version are rewritten.
 SIMULATION_VERSION = 2
