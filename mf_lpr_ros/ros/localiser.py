@@ -14,7 +14,9 @@ publish_mode on_request (the default in relocalise mode): `relocalisation` is pu
 per call of the ~/relocalise Trigger service, with the first scan after the call whose match
 passes verification, and the pose is returned in the reply (with a submap window: the first such
 scan whose window is complete, or at request_timeout_s the best partial one; the reply's
-described_from says which); continuous (the default in
+described_from says which; at request_timeout_s, too, a match that lacked only odometry
+support, which a robot standing still never gathers, the reply's verification saying so);
+continuous (the default in
 loop_closure mode): every accepted scan. Loop closures are published for every accepted scan
 in either mode, and for an earlier scan when later matches confirm its match (odometry
 consistency is symmetric: core/verification.py), with that scan's stamp.
@@ -82,12 +84,14 @@ class _PendingScan:
 @dataclass
 class _Request:
     """A relocalisation request: answered by the first scan received after `asked` (whose
-    submap window is complete; partial keeps the last verified answer from an incomplete one,
-    given at the timeout)."""
+    submap window is complete). partial keeps the answer given at the timeout: the last
+    verified one from an incomplete window (partial_verified), else the last match that lacked
+    only odometry support."""
 
     asked: float
     answer: Future = field(default_factory=Future)
     partial: tuple | None = None
+    partial_verified: bool = False
 
 
 class LocaliserLogic(LidarNodeMixin):
@@ -343,6 +347,8 @@ class LocaliserLogic(LidarNodeMixin):
         if not result.accepted:
             self.counters["matches_rejected"] += 1
             self.get_logger().debug(f"match rejected at {scan.seconds:.3f}: {result.reason}")
+            if result.support >= 0:
+                self._keep_unsupported(scan, result)
             return
         reference_pose = self.localiser.reference_pose(match.reference_index)
         world_T_base = relocalised_pose(match, reference_pose, self.settings.inputs.extrinsic)
@@ -353,6 +359,7 @@ class LocaliserLogic(LidarNodeMixin):
             self._requests = [r for r in self._requests if r not in answering]
             for request in asked:
                 request.partial = (scan, match, world_T_base, answer)
+                request.partial_verified = True
         if self.settings.publish_mode == "continuous" or answering:
             self._publish_pose(scan, match, world_T_base)
         for request in answering:
@@ -389,16 +396,38 @@ class LocaliserLogic(LidarNodeMixin):
             [h.confidence for h in match.hypotheses]))
         self.counters["poses_published"] += 1
 
+    def _keep_unsupported(self, scan: _PendingScan, result) -> None:
+        """A match that passed every test but odometry consistency (too few earlier matches
+        agree): the answer at the timeout of the requests waiting for this scan, unless a
+        verified one comes. A robot standing still never gathers support (its matches must be
+        consistency_min_support queries a metre apart), and a lost robot often stands still
+        when it asks."""
+        with self._wake:
+            asked = [r for r in self._requests
+                     if r.asked <= scan.received and not r.partial_verified]
+        if not asked:
+            return
+        reference_pose = self.localiser.reference_pose(result.match.reference_index)
+        world_T_base = relocalised_pose(result.match, reference_pose,
+                                        self.settings.inputs.extrinsic)
+        answer = self._answer(scan, result, world_T_base)
+        with self._wake:
+            for request in asked:
+                request.partial = (scan, result.match, world_T_base, answer)
+
     def _answer(self, scan: _PendingScan, result, world_T_base: np.ndarray) -> str:
-        """The Trigger reply's message: the published pose as JSON, and what the scan was
-        described from (a single scan, or a complete or partial submap)."""
+        """The Trigger reply's message: the published pose as JSON, what the scan was
+        described from (a single scan, or a complete or partial submap), and its verification
+        (the verifier's verdict: "accepted", or why it was not, for an answer given at the
+        timeout from a match that no later one confirmed)."""
         x, y = (float(v) for v in world_T_base[:2, 3])
         yaw = float(np.arctan2(world_T_base[1, 0], world_T_base[0, 0]))
         match = result.match
         return json.dumps({"frame_id": self.map_frame_id, "stamp": scan.seconds, "x": x, "y": y,
                            "yaw": yaw, "confidence": match.confidence,
                            "covariance_xy_yaw": match.covariance.ravel().tolist(),
-                           "described_from": result.described_from})
+                           "described_from": result.described_from,
+                           "verification": result.reason})
 
     async def _on_relocalise(self, request: Trigger.Request, response: Trigger.Response
                              ) -> Trigger.Response:

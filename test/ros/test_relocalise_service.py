@@ -9,6 +9,7 @@ import threading
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
@@ -87,6 +88,7 @@ def test_each_request_publishes_one_accurate_pose_with_amcls_qos(ros_graph, synt
             reply = _call(ros_graph, client)
             assert reply.success, reply.message
             answer = json.loads(reply.message)
+            assert answer["verification"] == "accepted"
             assert ros_graph.wait_for(lambda: len(poses) == request + 1)
             message = poses[-1]
             assert message.header.frame_id == answer["frame_id"] == "map"
@@ -126,6 +128,33 @@ def test_a_request_without_a_verified_match_times_out_with_a_reason(ros_graph, s
     reply = _call(ros_graph, client)
     assert not reply.success and "request_timeout_s" in reply.message
     assert node.counters["requests_timed_out"] == 1
+
+
+def test_a_robot_standing_still_is_answered_at_the_timeout_by_a_match_odometry_never_confirmed(
+        ros_graph, synthetic_map):
+    """A lost robot often stands still when it asks. Its matches never gather odometry support
+    (supporters come from queries a metre apart), so none is verified; at request_timeout_s the
+    reply gives the last match that passed every other test, publishes it once, and says
+    which test it lacks."""
+    path, queries = synthetic_map
+    node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path), pose_source="odom",
+                           request_timeout_s=2.0)
+    poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
+    client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
+    clouds, odometry = ros_graph.publisher(PointCloud2, "points"), ros_graph.publisher(
+        Odometry, "odom")
+    ros_graph.wait_for_subscribers(clouds)
+    ros_graph.wait_for_subscribers(odometry)
+    with ScanStream(clouds, queries[4:5], odometry=odometry) as stream:
+        reply = _call(ros_graph, client)
+    assert reply.success, reply.message
+    answer = json.loads(reply.message)
+    assert answer["verification"].startswith("odometry consistency: 0 earlier match(es) agree")
+    translation, yaw = errors(np.array([answer["x"], answer["y"], answer["yaw"]]),
+                              stream.truth[round(answer["stamp"], 3)])
+    assert translation < 0.5 and yaw < 2.0
+    assert ros_graph.wait_for(lambda: len(poses) == 1) and node.counters["poses_published"] == 1
+    assert node.counters["matches_accepted"] == 0
 
 
 def test_a_request_searches_wider_where_the_candidate_stage_leaves_the_place_out(
