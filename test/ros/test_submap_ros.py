@@ -4,15 +4,13 @@ timeout) and says which it used; without odometry the node describes single scan
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
-from test_relocalise_service import ScanStream, _call
-from test_ros_nodes import errors
+from test_relocalise_service import ScanStream, _answer_and_errors, _call
 
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.live.localiser import UNLEVELLED
@@ -59,14 +57,11 @@ def test_a_request_is_answered_from_a_complete_window(ros_graph, world, submap_m
     client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
     moving = route(300, lateral_offset_m=1.5, reverse=True)
     with posed_stream(ros_graph, world, moving) as stream:
-        reply = _call(ros_graph, client, timeout_s=90.0)
-    assert reply.success, reply.message
-    answer = json.loads(reply.message)
+        answer, translation, yaw = _answer_and_errors(_call(ros_graph, client, timeout_s=90.0),
+                                                      stream)
     assert answer["described_from"].startswith("complete submap of")
     travelled = float(answer["described_from"].rsplit("over ", 1)[1].split(" m")[0])
     assert travelled >= WINDOW_M - 0.6
-    translation, yaw = errors(np.array([answer["x"], answer["y"], answer["yaw"]]),
-                              stream.truth[round(answer["stamp"], 3)])
     assert translation < 2.0 and yaw < 5.0
     assert node.localiser.submap is not None
 
@@ -78,12 +73,8 @@ def test_a_robot_standing_still_is_answered_from_a_partial_window_at_the_timeout
     client = ros_graph.node.create_client(Trigger, "/localiser/relocalise")
     standing = np.repeat(route(300, lateral_offset_m=1.5, reverse=True)[100:101], 30, axis=0)
     with posed_stream(ros_graph, world, standing) as stream:
-        reply = _call(ros_graph, client)
-    assert reply.success, reply.message
-    answer = json.loads(reply.message)
+        answer, translation, _ = _answer_and_errors(_call(ros_graph, client), stream)
     assert answer["described_from"].startswith("partial submap of")
-    translation, _ = errors(np.array([answer["x"], answer["y"], answer["yaw"]]),
-                            stream.truth[round(answer["stamp"], 3)])
     assert translation < 2.0
 
 
