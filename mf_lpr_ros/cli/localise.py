@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.cli.common import SOURCE_HELP, add_common, config_from_arguments
+from mf_lpr_ros.core.auto_params import map_built_warning
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import open_source
 
@@ -20,9 +21,9 @@ def cmd_localise(args: argparse.Namespace) -> int:
     from mf_lpr_ros.pipeline.localise import localise_sequence
 
     reference_map = ReferenceMap.load(args.map)
-    if "single_scan_warning" in reference_map.metadata:
-        print(f"warning: map built where {reference_map.metadata['single_scan_warning']}",
-              file=sys.stderr)
+    warning = map_built_warning(reference_map.metadata)
+    if warning is not None:
+        print(f"warning: {warning}", file=sys.stderr)
     search = config_from_arguments(args).search
     if args.min_confidence is not None:
         search = replace(search, min_confidence=args.min_confidence)

@@ -15,6 +15,7 @@ from mf_lpr_ros.cli.common import (
     config_from_arguments,
 )
 from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.auto_params import SINGLE_SCAN_WARNING_KEY
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import open_source
 
@@ -36,8 +37,8 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     reference_map.save(args.out)
     if "auto" in reference_map.metadata:
         print(reference_map.metadata["auto"]["choice"])
-    if "single_scan_warning" in reference_map.metadata:
-        print(f"warning: {reference_map.metadata['single_scan_warning']}", file=sys.stderr)
+    if SINGLE_SCAN_WARNING_KEY in reference_map.metadata:
+        print(f"warning: {reference_map.metadata[SINGLE_SCAN_WARNING_KEY]}", file=sys.stderr)
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
           f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
     return 0

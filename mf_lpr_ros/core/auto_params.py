@@ -173,6 +173,17 @@ def resolve_for_sequence(config: Config, sequence) -> tuple[Config, SensorProfil
     return auto_config(clouds, config, orientations)
 
 
+# Where a map records its single_scan_warning (map metadata), for whatever searches it later.
+SINGLE_SCAN_WARNING_KEY = "single_scan_warning"
+
+
+def map_built_warning(metadata: dict) -> str | None:
+    """What a search of a map should tell its user about how the map was built: the
+    single_scan_warning its build recorded, if any."""
+    warning = metadata.get(SINGLE_SCAN_WARNING_KEY)
+    return None if warning is None else f"map built where {warning}"
+
+
 def single_scan_warning(profile: SensorProfile, params: DescriptorParams) -> str | None:
     """What to tell a user whose named preset describes, one scan at a time, a sensor that auto
     gives submaps (a narrow or sparse one: one of its scans sees too little of a place to tell

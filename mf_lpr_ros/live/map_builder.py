@@ -10,6 +10,7 @@ import numpy as np
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import (
     SAMPLE_SCANS,
+    SINGLE_SCAN_WARNING_KEY,
     auto_config,
     map_metadata,
     measure_sensor,
@@ -110,7 +111,7 @@ class MapBuilder:
             return
         self.single_scan_warning = single_scan_warning(profile, self.config.descriptor)
         if self.single_scan_warning is not None:
-            self.map.metadata["single_scan_warning"] = self.single_scan_warning
+            self.map.metadata[SINGLE_SCAN_WARNING_KEY] = self.single_scan_warning
 
     def derive_auto(self) -> int | None:
         """Derive the descriptor from the held-back scans (preset auto) and add them; the last

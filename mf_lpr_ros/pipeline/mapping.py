@@ -9,6 +9,7 @@ import numpy as np
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import (
+    SINGLE_SCAN_WARNING_KEY,
     map_metadata,
     resolve_for_sequence,
     single_scan_warning_for_sequence,
@@ -86,7 +87,7 @@ def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
         metadata["auto"] = map_metadata(profile, resolved.descriptor)
     warning = single_scan_warning_for_sequence(resolved, sequence)
     if warning is not None:
-        metadata["single_scan_warning"] = warning
+        metadata[SINGLE_SCAN_WARNING_KEY] = warning
     return ReferencePlan(indices, resolved, sequence.name, getattr(sequence, "frame_id", ""),
                          metadata)
 

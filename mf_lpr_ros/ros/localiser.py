@@ -43,6 +43,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from mf_lpr_ros.config import Config
+from mf_lpr_ros.core.auto_params import map_built_warning
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.errors import (
     InvalidCloudError,
@@ -130,9 +131,9 @@ class LocaliserLogic(LidarNodeMixin):
         reference_map = self._open_map()
         if "auto" in reference_map.metadata:
             self.get_logger().info(f"map built with {reference_map.metadata['auto']['choice']}")
-        if "single_scan_warning" in reference_map.metadata:
-            self.get_logger().warning(
-                f"map built where {reference_map.metadata['single_scan_warning']}")
+        warning = map_built_warning(reference_map.metadata)
+        if warning is not None:
+            self.get_logger().warning(warning)
         config = Config(reference_map.params, settings.config.search, settings.config.spacing_m)
         try:
             self.localiser = Localiser(reference_map, config, mode=settings.mode,
@@ -350,9 +351,7 @@ class LocaliserLogic(LidarNodeMixin):
             if result.support >= 0:
                 self._keep_unsupported(scan, result)
             return
-        reference_pose = self.localiser.reference_pose(match.reference_index)
-        world_T_base = relocalised_pose(match, reference_pose, self.settings.inputs.extrinsic)
-        answer = self._answer(scan, result, world_T_base)
+        reference_pose, world_T_base, answer = self._located(scan, result)
         with self._wake:
             asked = [r for r in self._requests if r.asked <= scan.received]
             answering = asked if result.window_complete else []
@@ -407,13 +406,18 @@ class LocaliserLogic(LidarNodeMixin):
                      if r.asked <= scan.received and not r.partial_verified]
         if not asked:
             return
-        reference_pose = self.localiser.reference_pose(result.match.reference_index)
-        world_T_base = relocalised_pose(result.match, reference_pose,
-                                        self.settings.inputs.extrinsic)
-        answer = self._answer(scan, result, world_T_base)
+        _, world_T_base, answer = self._located(scan, result)
         with self._wake:
             for request in asked:
                 request.partial = (scan, result.match, world_T_base, answer)
+
+    def _located(self, scan: _PendingScan, result) -> tuple[np.ndarray, np.ndarray, str]:
+        """The matched reference's pose, the robot's pose in the map it implies, and the reply
+        a request would get from this scan."""
+        reference_pose = self.localiser.reference_pose(result.match.reference_index)
+        world_T_base = relocalised_pose(result.match, reference_pose,
+                                        self.settings.inputs.extrinsic)
+        return reference_pose, world_T_base, self._answer(scan, result, world_T_base)
 
     def _answer(self, scan: _PendingScan, result, world_T_base: np.ndarray) -> str:
         """The Trigger reply's message: the published pose as JSON, what the scan was
