@@ -39,6 +39,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         print(reference_map.metadata["auto"]["choice"])
     if SINGLE_SCAN_WARNING_KEY in reference_map.metadata:
         print(f"warning: {reference_map.metadata[SINGLE_SCAN_WARNING_KEY]}", file=sys.stderr)
+    _warn_passed_over(reference_map)
     print(f"wrote {args.out}: {len(reference_map)} references from {len(sequence)} scans "
           f"(voxel {reference_map.params.voxel_size} m, spacing {config.spacing_m} m)")
     return 0
@@ -59,11 +60,21 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
         for spec, reference_map in zip(specs, maps):
             path = out_dir / f"{Path(spec.path).name}.mfmap"
             reference_map.save(path)
+            _warn_passed_over(reference_map)
             print(f"wrote {path}: {len(reference_map)} references")
     else:
         maps[0].save(args.out)
+        _warn_passed_over(maps[0])
         print(f"wrote {args.out}: {len(maps[0])} references from {len(specs)} sources")
     return 0
+
+
+def _warn_passed_over(reference_map: ReferenceMap) -> None:
+    from mf_lpr_ros.pipeline.mapping import passed_over_summary
+
+    summary = passed_over_summary(reference_map.metadata)
+    if summary is not None:
+        print(f"warning: {summary}", file=sys.stderr)
 
 
 def _build_global_map(args: argparse.Namespace, config: Config) -> int:

@@ -207,7 +207,8 @@ def single_scan_warning_for_sequence(config: Config, sequence) -> str | None:
     samples hold no finite point: the build itself says what is wrong with such scans)."""
     if config.auto or config.descriptor.submap_m > 0:
         return None
-    scans = list(sequence.iter_scans(sample_indices(len(sequence))))
+    scans = [scan for scan in sequence.iter_scans(sample_indices(len(sequence)))
+             if not scan.problem]
     if not scans or any(scan.points is None for scan in scans):
         return None
     clouds, orientations = profile_sequence_scans(scans)
@@ -302,6 +303,9 @@ def profile_sequence_scans(scans: Iterable) -> tuple[list[np.ndarray], list[np.n
     """Clouds and (when every scan has a finite pose) orientations of dataset Scans."""
     clouds, orientations = [], []
     for scan in scans:
+        if scan.problem:
+            # Nothing was read (Scan.problem): the build passes over such a scan too.
+            continue
         if scan.points is None:
             raise InvalidCloudError("preset auto measures point clouds; this source gives density "
                                     "images (use a named preset, e.g. kitti)")

@@ -20,6 +20,10 @@ class Scan:
     sensor_offset_m: where the sensor truly sits, along x and y, from that centre corner: half a
     pixel for images that centre the sensor on a pixel (BEVPlace's), which no resampling onto
     the package's grid can undo; the search corrects poses for it (MatchedFilterIndex.query).
+    problem: why the source gave nothing to read for this scan (an empty or malformed message
+    among good ones), with neither points nor density; "" when it gave them. Describing such a
+    scan raises InvalidCloudError with it, so the tools pass over it as over any scan with
+    nothing to describe.
     """
 
     index: int
@@ -29,6 +33,7 @@ class Scan:
     density: np.ndarray | None = None
     density_pixel_m: float = 0.0
     sensor_offset_m: float = 0.0
+    problem: str = ""
 
 
 class Sequence:

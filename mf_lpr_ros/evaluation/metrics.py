@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mf_lpr_ros.pipeline.mapping import NOT_DESCRIBED
+
 RECALL_AT_N = 5
 _CURVE_POINTS = 200
 
@@ -72,7 +74,8 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
     success_rate = successes / correct retrievals (BVMatch). f1_max and pr_curve over the
     confidence: an accepted correct retrieval is a true positive, any other accepted match a
     false positive. recall_vs_threshold: recall as the distance threshold varies (positives
-    fixed by tolerance). Timings are medians per query.
+    fixed by tolerance). Timings are medians per query searched; queries_not_described counts
+    those that had nothing to describe (each a miss).
 
     Loop closures as published (each method's own acceptance, MF-LPR's verification):
     closures_published; closures_false, those whose estimated query position lies farther than
@@ -106,6 +109,10 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
 
     def stat(values: np.ndarray, reducer) -> float:
         return float(reducer(values)) if len(values) else float("nan")
+
+    def median_searched(values: np.ndarray) -> float:
+        # A query that was not searched (nothing to describe) took no search time to median.
+        return stat(values[np.isfinite(values)], np.median)
 
     searched_nearest = column(r.searched_nearest_m for r in records)
     confidence = column(r.confidence for r in records)
@@ -147,10 +154,11 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
             "threshold_m": thresholds.tolist(),
             "retrieval": [rate(retrieved_distance <= t) for t in thresholds],
             "corrected": [rate(rte <= t) for t in thresholds]},
-        "ms_per_query": stat(ms_total, np.median),
-        "ms_descriptor": stat(ms_descriptor, np.median),
-        "ms_global": stat(ms_global, np.median),
-        "ms_local": stat(ms_local, np.median),
+        "ms_per_query": median_searched(ms_total),
+        "ms_descriptor": median_searched(ms_descriptor),
+        "ms_global": median_searched(ms_global),
+        "ms_local": median_searched(ms_local),
+        "queries_not_described": sum(r.reason.startswith(NOT_DESCRIBED) for r in records),
     }
     if not poses_scored:
         summary.update(dict.fromkeys(POSE_FIGURES, math.nan))

@@ -29,8 +29,10 @@ from mf_lpr_ros.core.references import select_references
 from mf_lpr_ros.core.verification import reason_when_confirmed
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.datasets.base import nearest_keys
+from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.evaluation.methods import make_method
 from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
+from mf_lpr_ros.pipeline.mapping import NOT_DESCRIBED
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
@@ -146,6 +148,11 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     The method sees the sequences' poses (the map's poses, each query's odometry and the
     odometry its submaps are made with); truth_poses, the query sequence's ground truth (and the
     references' in the single-sequence protocol), defaults to the same poses.
+
+    A scan with nothing to describe (InvalidCloudError) is passed over, as the live nodes and
+    `localise` pass over it: a reference is left out of the map (its place is still in the
+    protocol's ground truth, so a query there can only miss), a query is recorded as a miss
+    whose reason begins NOT_DESCRIBED.
     """
     same_sequence = query is None
     reference = with_submaps(reference, method.submap_window)
@@ -153,18 +160,26 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     wanted_refs = {int(i): k for k, i in enumerate(selection.references)}
     wanted_queries = set(selection.queries.tolist())
     ref_descriptors: list = [None] * len(wanted_refs)
-    query_descriptors: dict[int, tuple[Any, float]] = {}
+    # Per query scan: its descriptor (None: not described), the time it took, why not.
+    query_descriptors: dict[int, tuple[Any, float, str]] = {}
 
     def describe_query(scan: Scan) -> None:
         started = time.perf_counter()
-        descriptor = method.describe(scan, reference=False)
-        query_descriptors[scan.index] = (descriptor, (time.perf_counter() - started) * 1e3)
+        try:
+            descriptor, problem = method.describe(scan, reference=False), ""
+        except InvalidCloudError as error:
+            descriptor, problem = None, str(error)
+        query_descriptors[scan.index] = (descriptor, (time.perf_counter() - started) * 1e3,
+                                         problem)
 
     to_describe = sorted(set(wanted_refs) | (wanted_queries if same_sequence else set()))
     for scan in progress_bar(reference.iter_scans(to_describe), total=len(to_describe),
                              desc=f"{method.name}: describe", enabled=progress, unit="scan"):
         if scan.index in wanted_refs:
-            ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
+            try:
+                ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
+            except InvalidCloudError:
+                pass
         if same_sequence and scan.index in wanted_queries:
             describe_query(scan)
     if not same_sequence:
@@ -173,21 +188,40 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
                                  desc=f"{method.name}: describe queries", enabled=progress,
                                  unit="scan"):
             describe_query(scan)
-    method.build(ref_descriptors, reference.poses[selection.references],
-                 reference.stamps[selection.references])
+    described = np.array([descriptor is not None for descriptor in ref_descriptors])
+    if not described.any():
+        raise InvalidCloudError(f"{reference.name}: none of the {len(described)} references "
+                                f"could be described")
+    # Positions in the map of the described references, and how many precede each selection
+    # position (a query may match the first n_active of the selection).
+    in_map = np.flatnonzero(described)
+    described_before = np.concatenate([[0], np.cumsum(described)])
+    mapped = selection.references[in_map]
+    method.build([ref_descriptors[k] for k in in_map], reference.poses[mapped],
+                 reference.stamps[mapped])
 
     truth_poses = query_seq.poses if truth_poses is None else truth_poses
     ref_planar = planar((truth_poses if same_sequence else reference.poses)[selection.references])
     records = []
+    # The record of each query the method searched, in its order (Retrieval.confirms).
+    searched_records: list[int] = []
     for query_index, n_active in progress_bar(zip(selection.queries, selection.n_active),
                                               total=len(selection.queries),
                                               desc=f"{method.name}: search", enabled=progress,
                                               unit="query"):
-        descriptor, descriptor_ms = query_descriptors[int(query_index)]
-        retrieval = method.query(descriptor, int(n_active), planar(query_seq.poses[query_index]))
+        descriptor, descriptor_ms, problem = query_descriptors[int(query_index)]
         truth = planar(truth_poses[query_index])
         distances = np.linalg.norm(ref_planar[:n_active, :2] - truth[:2], axis=1)
-        found = retrieval.reference
+        n_described = int(described_before[n_active])
+        if descriptor is None or not n_described:
+            records.append(_not_searched(
+                int(query_index), float(query_seq.stamps[query_index]), truth, distances,
+                descriptor_ms, f"{NOT_DESCRIBED}{problem}" if descriptor is None
+                else "no reference it may match could be described"))
+            continue
+        searched_records.append(len(records))
+        retrieval = method.query(descriptor, n_described, planar(query_seq.poses[query_index]))
+        found = int(in_map[retrieval.reference]) if retrieval.reference >= 0 else -1
         rte, rre = planar_error(retrieval.pose, truth) if found >= 0 else (math.inf, math.inf)
         records.append(QueryRecord(
             query_index=int(query_index),
@@ -197,7 +231,8 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             reference_index=int(selection.references[found]) if found >= 0 else -1,
             nearest_reference_m=float(distances.min()),
             retrieved_distance_m=float(distances[found]) if found >= 0 else math.inf,
-            candidate_distances_m=distances[retrieval.candidates[:RECALL_AT_N]].tolist(),
+            candidate_distances_m=distances[
+                in_map[retrieval.candidates[:RECALL_AT_N]]].tolist(),
             rte_m=rte,
             rre_deg=rre,
             confidence=float(retrieval.confidence),
@@ -208,12 +243,26 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             distinctiveness=float(retrieval.distinctiveness),
             local_distinctiveness=float(retrieval.local_distinctiveness),
             reason=retrieval.reason,
-            searched_nearest_m=_nearest_of(distances, retrieval.searched),
+            searched_nearest_m=_nearest_of(
+                distances, None if retrieval.searched is None else in_map[retrieval.searched]),
             place_similarity=float(retrieval.place_similarity)))
         for earlier in retrieval.confirms:
-            records[earlier].published = True
-            records[earlier].reason = reason_when_confirmed(records[earlier].reason)
+            confirmed = records[searched_records[earlier]]
+            confirmed.published = True
+            confirmed.reason = reason_when_confirmed(confirmed.reason)
     return records
+
+
+def _not_searched(query_index: int, stamp: float, truth: np.ndarray, distances: np.ndarray,
+                  descriptor_ms: float, reason: str) -> QueryRecord:
+    """The record of a query that could not be searched: a miss, for the reason given."""
+    return QueryRecord(
+        query_index=query_index, stamp=stamp, truth=truth.tolist(),
+        estimate=[math.nan] * 3, reference_index=-1,
+        nearest_reference_m=float(distances.min()), retrieved_distance_m=math.inf,
+        candidate_distances_m=[], rte_m=math.inf, rre_deg=math.inf, confidence=0.0,
+        published=False, ms_descriptor=descriptor_ms, ms_global=math.nan, ms_local=math.nan,
+        reason=reason, searched_nearest_m=math.inf)
 
 
 def _nearest_of(distances: np.ndarray, references: np.ndarray | None) -> float:

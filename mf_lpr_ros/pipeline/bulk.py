@@ -19,7 +19,14 @@ from mf_lpr_ros.core.references import DescribedScan, add_references, keeps_clou
 from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.pipeline.distributed import run_units
-from mf_lpr_ros.pipeline.mapping import ReferencePlan, described_scan, plan_references
+from mf_lpr_ros.pipeline.mapping import (
+    PassedOver,
+    ReferencePlan,
+    describe_references,
+    described_scan,
+    plan_references,
+    record_passed_over,
+)
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
@@ -38,12 +45,15 @@ class SourceSpec:
         return open_source(self.path, self.cloud_topic, self.pose_topic)
 
 
-def describe_chunk(spec: SourceSpec, indices: np.ndarray, config: Config,
-                   keep_clouds: bool) -> list[DescribedScan]:
-    """The work unit: these scans of one source described as references."""
+def describe_chunk(spec: SourceSpec, indices: np.ndarray, ends: np.ndarray, config: Config,
+                   keep_clouds: bool) -> tuple[list[DescribedScan], list[PassedOver]]:
+    """The work unit: these planned references of one source described (a scan with nothing to
+    describe taken from the next one before ends, as mapping.describe_references does), and
+    the scans passed over."""
     sequence = with_submaps(spec.open(), SubmapWindow.for_descriptor(config.descriptor))
-    return [described_scan(scan, config.descriptor, keep_cloud=keep_clouds)
-            for scan in sequence.iter_scans(indices)]
+    return describe_references(
+        sequence, indices, ends,
+        lambda scan: described_scan(scan, config.descriptor, keep_cloud=keep_clouds))
 
 
 @dataclass
@@ -52,9 +62,11 @@ class _SourcePlan:
     plan: ReferencePlan
 
     @property
-    def chunks(self) -> list[np.ndarray]:
-        indices = self.plan.indices
-        return [indices[start:start + CHUNK_SCANS] for start in range(0, len(indices), CHUNK_SCANS)]
+    def chunks(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The planned references in chunks, each with its references' ends (ReferencePlan)."""
+        indices, ends = self.plan.indices, self.plan.ends
+        return [(indices[start:start + CHUNK_SCANS], ends[start:start + CHUNK_SCANS])
+                for start in range(0, len(indices), CHUNK_SCANS)]
 
 
 def build_maps(specs: list[SourceSpec], config: Config, *, combine: bool = False,
@@ -70,9 +82,10 @@ def build_maps(specs: list[SourceSpec], config: Config, *, combine: bool = False
         if combine and plans:
             config = plans[0].plan.config
         plans.append(_SourcePlan(spec, plan_references(spec.open(), config)))
-    units = [(f"{k}:{c}", (source.spec, chunk, source.plan.config,
+    units = [(f"{k}:{c}", (source.spec, indices, ends, source.plan.config,
                            keeps_clouds(source.plan.config.search, keep_clouds)))
-             for k, source in enumerate(plans) for c, chunk in enumerate(source.chunks)]
+             for k, source in enumerate(plans)
+             for c, (indices, ends) in enumerate(source.chunks)]
     if client is None:
         described = {name: describe_chunk(*arguments) for name, arguments in progress_bar(
             units, total=len(units), desc="describe", enabled=progress, unit="chunk")}
@@ -81,12 +94,16 @@ def build_maps(specs: list[SourceSpec], config: Config, *, combine: bool = False
                               description="describe")
     maps = []
     for k, source in enumerate(plans):
-        scans = [scan for c in range(len(source.chunks)) for scan in described[f"{k}:{c}"]]
+        chunks = [described[f"{k}:{c}"] for c in range(len(source.chunks))]
+        scans = [scan for chunk_scans, _ in chunks for scan in chunk_scans]
+        passed_over = [scan for _, chunk_passed in chunks for scan in chunk_passed]
         if combine and maps:
             add_references(maps[0], scans)
             maps[0].metadata["sources"].append(source.plan.name)
+            record_passed_over(maps[0], passed_over, len(scans), source.plan.name)
             continue
         reference_map = source.plan.new_map(**({"sources": [source.plan.name]} if combine else {}))
         add_references(reference_map, scans)
+        record_passed_over(reference_map, passed_over, len(scans), source.plan.name)
         maps.append(reference_map)
     return maps

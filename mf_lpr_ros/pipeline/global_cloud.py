@@ -84,6 +84,8 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
     valid = np.flatnonzero(np.isfinite(sequence.poses).all(axis=(1, 2)))
     for scan in progress_bar(sequence.iter_scans(valid), total=len(valid), desc="accumulate",
                              enabled=progress, unit="scan"):
+        if scan.problem:
+            continue
         if scan.points is None:
             raise InvalidCloudError(f"{sequence.name}: accumulating needs point clouds, not "
                                     "density images")

@@ -4,6 +4,7 @@ builder describes them (mf_lpr_ros.core.references), with the preset auto resolv
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -30,10 +31,16 @@ from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
+# How the reason given for a query with nothing to describe begins (`localise`, evaluation).
+NOT_DESCRIBED = "not described: "
+
 
 def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> np.ndarray:
-    """Occupancy of a scan, from its points or its ready density image. A scan that cannot be
-    described is named in the error: a batch of thousands stops at it."""
+    """Occupancy of a scan, from its points or its ready density image. A scan with nothing to
+    describe (Scan.problem, or nothing finite in the window) raises InvalidCloudError naming
+    it: the tools pass over it (describe_references, localise, evaluate)."""
+    if scan.problem:
+        raise _unreadable(scan)
     if scan.density is None and scan.points is None:
         raise ValueError(f"scan {scan.index} has neither points nor a density image")
     try:
@@ -42,15 +49,24 @@ def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> n
                                     points=points, density=scan.density,
                                     density_pixel_m=scan.density_pixel_m)
     except InvalidCloudError as error:
-        raise InvalidCloudError(f"scan {scan.index} (stamp {scan.stamp:.3f} s): {error}") \
-            from error
+        raise InvalidCloudError(f"{_named(scan)}: {error}") from error
 
 
 def prepared_points(scan: Scan, params: DescriptorParams) -> np.ndarray:
     """The scan's points in the descriptor's frame (levelled when params.level)."""
+    if scan.problem:
+        raise _unreadable(scan)
     if scan.points is None:
         raise ValueError(f"scan {scan.index} has no points")
     return descriptor_points(scan.points, scan.pose, params)
+
+
+def _named(scan: Scan) -> str:
+    return f"scan {scan.index} (stamp {scan.stamp:.3f} s)"
+
+
+def _unreadable(scan: Scan) -> InvalidCloudError:
+    return InvalidCloudError(f"{_named(scan)}: {scan.problem}")
 
 
 def described_scan(scan: Scan, params: DescriptorParams, *, reference: bool = True,
@@ -59,6 +75,85 @@ def described_scan(scan: Scan, params: DescriptorParams, *, reference: bool = Tr
     return DescribedScan(describe_scan(scan, params, reference=reference), scan.pose, scan.stamp,
                          scan.index, prepared_points(scan, params) if keep_cloud else None,
                          scan.sensor_offset_m)
+
+
+@dataclass(frozen=True)
+class PassedOver:
+    """A scan a map's build passed over: it had nothing to describe (why)."""
+
+    index: int
+    stamp: float
+    why: str
+
+    def to_dict(self) -> dict:
+        return {"scan": self.index, "stamp": self.stamp, "why": self.why}
+
+
+# Where a map's metadata notes the scans its build passed over, and how many it lists by name
+# (the count covers them all).
+PASSED_OVER_KEY = "scans_passed_over"
+PASSED_OVER_LISTED = 20
+
+
+def describe_references(sequence: Sequence, indices: np.ndarray, ends: np.ndarray,
+                        describe: Callable[[Scan], DescribedScan], *, progress: bool = False
+                        ) -> tuple[list[DescribedScan], list[PassedOver]]:
+    """The planned references indices described in order. One whose scan has nothing to
+    describe is taken from the next scan that has, before ends[k] (the next planned
+    reference's scan) and with a pose, as the live map builder takes the next scan; with no
+    such scan the map has no reference there. Returns the references and the scans passed
+    over. progress: a progress bar over the planned references."""
+    described, passed_over = [], []
+    posed = np.isfinite(sequence.poses).all(axis=(1, 2))
+
+    def attempt(scan: Scan) -> DescribedScan | None:
+        try:
+            return describe(scan)
+        except InvalidCloudError as error:
+            passed_over.append(PassedOver(scan.index, scan.stamp, str(error)))
+            return None
+
+    scans = progress_bar(sequence.iter_scans(indices), total=len(indices), desc="build map",
+                         enabled=progress, unit="scan")
+    for k, scan in enumerate(scans):
+        reference = attempt(scan)
+        if reference is None:
+            later = np.arange(scan.index + 1, ends[k])
+            replacements = sequence.iter_scans(later[posed[later]])
+            reference = next((found for found in map(attempt, replacements)
+                              if found is not None), None)
+            replacements.close()
+        if reference is not None:
+            described.append(reference)
+    return described, passed_over
+
+
+def record_passed_over(reference_map: ReferenceMap, passed_over: list[PassedOver], added: int,
+                       source: str) -> None:
+    """Notes in the map's metadata the scans of source its build passed over, when any, having
+    added `added` references from source; a source none of whose references could be described
+    is refused, naming the first scan's problem."""
+    if not passed_over:
+        return
+    if not added:
+        raise InvalidCloudError(f"{source}: no reference could be described; "
+                                f"{len(passed_over)} scan(s) had nothing to describe, the "
+                                f"first: {passed_over[0].why}")
+    noted = reference_map.metadata.setdefault(PASSED_OVER_KEY, {"count": 0, "scans": []})
+    noted["count"] += len(passed_over)
+    room = max(PASSED_OVER_LISTED - len(noted["scans"]), 0)
+    noted["scans"] += [dict(scan.to_dict(), source=source) for scan in passed_over[:room]]
+
+
+def passed_over_summary(metadata: dict) -> str | None:
+    """One line for a map's builder: how many scans it passed over and the first one's problem
+    (None when it passed over none)."""
+    noted = metadata.get(PASSED_OVER_KEY)
+    if not noted:
+        return None
+    return (f"passed over {noted['count']} scan(s) with nothing to describe (a reference's "
+            f"taken from the next scan that has something; the map's metadata lists them); "
+            f"the first: {noted['scans'][0]['why']}")
 
 
 @dataclass
@@ -70,6 +165,13 @@ class ReferencePlan:
     name: str
     frame_id: str
     metadata: dict
+    n_scans: int
+
+    @property
+    def ends(self) -> np.ndarray:
+        """For each reference, the scan where the next one's begins (the last: the sequence's
+        end): a reference with nothing to describe is taken from a scan before it."""
+        return np.append(self.indices[1:], self.n_scans)
 
     def new_map(self, **metadata) -> ReferenceMap:
         return ReferenceMap(self.config.descriptor, sensor_frame_id=self.frame_id,
@@ -89,20 +191,24 @@ def plan_references(sequence: Sequence, config: Config) -> ReferencePlan:
     if warning is not None:
         metadata[SINGLE_SCAN_WARNING_KEY] = warning
     return ReferencePlan(indices, resolved, sequence.name, getattr(sequence, "frame_id", ""),
-                         metadata)
+                         metadata, len(sequence))
 
 
 def build_map(sequence: Sequence, config: Config, *, keep_clouds: bool = False,
               progress: bool = True) -> ReferenceMap:
     """A ReferenceMap from a sequence's scans, one reference every config.spacing_m metres
     (each described from its submap when the descriptor asks for one), with the scans' clouds
-    when keep_clouds or when the resolved config verifies by ICP (references.keeps_clouds)."""
+    when keep_clouds or when the resolved config verifies by ICP (references.keeps_clouds).
+    A reference scan with nothing to describe is taken from the next one
+    (describe_references); the map's metadata lists those passed over."""
     plan = plan_references(sequence, config)
     reference_map = plan.new_map()
     sequence = with_submaps(sequence, SubmapWindow.for_descriptor(plan.config.descriptor))
-    scans = progress_bar(sequence.iter_scans(plan.indices), total=len(plan.indices),
-                         desc="build map", enabled=progress, unit="scan")
     keep_cloud = keeps_clouds(plan.config.search, keep_clouds)
-    add_references(reference_map, (described_scan(scan, plan.config.descriptor,
-                                                  keep_cloud=keep_cloud) for scan in scans))
+    described, passed_over = describe_references(
+        sequence, plan.indices, plan.ends,
+        lambda scan: described_scan(scan, plan.config.descriptor, keep_cloud=keep_cloud),
+        progress=progress)
+    add_references(reference_map, described)
+    record_passed_over(reference_map, passed_over, len(described), plan.name)
     return reference_map
