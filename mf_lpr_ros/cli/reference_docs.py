@@ -94,7 +94,9 @@ def datasets_page() -> str:
              "stamp. A scan outside the poses' span takes the first or last pose only within "
              "half a pose interval, where that pose is still its nearest; further out it has no "
              "pose (as in the nodes) rather than that of a place up to `max_pose_gap_s` away. "
-             "Anything else is refused with an error listing these layouts.", "",
+             "One scan file or bag message that cannot be read (cut short, empty, malformed) is "
+             "a scan with nothing to describe, which every tool passes over by name "
+             "(docs/CLI.md). Anything else is refused with an error listing these layouts.", "",
              "| layout | loader | notes |", "|---|---|---|"]
     for loader in LOADERS:
         module = loader.__module__.replace(".", "/") + ".py"

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Iterable, Iterator
+from typing import Callable, ClassVar, Iterable, Iterator
 
 import numpy as np
 
-from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 
 
 @dataclass
@@ -77,6 +77,20 @@ class Sequence:
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         raise NotImplementedError
+
+    def _scan(self, index: int, read: Callable[[], dict], where: str = "") -> Scan:
+        """The scan at index with what read() gives (its Scan fields: points, or a density image
+        and its layout). A file or message that cannot be read (DatasetError or
+        InvalidCloudError naming the problem, OSError) gives a scan with that problem instead
+        (Scan.problem, prefixed with where when given): one bad file among thousands is passed
+        over by name, not the end of the read."""
+        index = int(index)
+        stamp, pose = float(self.stamps[index]), self.pose(index)
+        try:
+            fields = read()
+        except (DatasetError, InvalidCloudError, OSError) as error:
+            return Scan(index, stamp, pose, problem=f"{where}: {error}" if where else str(error))
+        return Scan(index, stamp, pose, **fields)
 
     def pose(self, index: int) -> np.ndarray | None:
         return None if self.poses is None else self.poses[index]

@@ -49,10 +49,9 @@ class BevPngSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
-                       density=load_bev_density(self._files[index]),
-                       density_pixel_m=self.pixel_size_m,
-                       sensor_offset_m=self.pixel_size_m / 2)
+            yield self._scan(index, lambda: {
+                "density": load_bev_density(self._files[index]),
+                "density_pixel_m": self.pixel_size_m, "sensor_offset_m": self.pixel_size_m / 2})
 
 
 def load_bev_density(path: Path) -> np.ndarray:

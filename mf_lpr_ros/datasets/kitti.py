@@ -49,8 +49,7 @@ class KittiSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
-                       points=read_xyzi_bin(self._files[index]))
+            yield self._scan(index, lambda: {"points": read_xyzi_bin(self._files[index])})
 
 
 def _frame_number(path: Path) -> float:

@@ -62,5 +62,4 @@ class MulranSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)),
-                       points=read_xyzi_bin(self._files[index]))
+            yield self._scan(index, lambda: {"points": read_xyzi_bin(self._files[index])})

@@ -61,13 +61,17 @@ class NcltSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            path = self._files[index]
-            raw = path.read_bytes()
-            if len(raw) % _RECORD.itemsize:
-                raise DatasetError(f"{path}: size is not a multiple of 8 bytes (NCLT records)")
-            xyz = np.frombuffer(raw, dtype=_RECORD)["xyz"].astype(np.float32) * 0.005 - 100.0
-            xyz[:, 1:] *= -1.0
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)), points=xyz)
+            yield self._scan(index, lambda: {"points": _read_velodyne_sync(self._files[index])})
+
+
+def _read_velodyne_sync(path: Path) -> np.ndarray:
+    """x, y, z (N, 3) of an NCLT velodyne_sync .bin scan, in the package's z-up frame."""
+    raw = path.read_bytes()
+    if len(raw) % _RECORD.itemsize:
+        raise DatasetError(f"{path}: size is not a multiple of 8 bytes (NCLT records)")
+    xyz = np.frombuffer(raw, dtype=_RECORD)["xyz"].astype(np.float32) * 0.005 - 100.0
+    xyz[:, 1:] *= -1.0
+    return xyz
 
 
 def _read_csv(path: Path, columns: int) -> np.ndarray:

@@ -81,10 +81,14 @@ class OxfordRadarSequence(Sequence):
 
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
-            path = self._files[index]
-            xyz = read_velodyne_png(path) if path.suffix == ".png" else read_velodyne_bin(path)
-            xyz[:, 1:] *= -1.0
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)), points=xyz)
+            yield self._scan(index, lambda: {"points": _read_velodyne(self._files[index])})
+
+
+def _read_velodyne(path: Path) -> np.ndarray:
+    """x, y, z (N, 3) of a raw Velodyne scan (.png or .bin), in the package's z-up frame."""
+    xyz = read_velodyne_png(path) if path.suffix == ".png" else read_velodyne_bin(path)
+    xyz[:, 1:] *= -1.0
+    return xyz
 
 
 def read_velodyne_bin(path: Path) -> np.ndarray:

@@ -84,5 +84,5 @@ class PointFolderSequence(Sequence):
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
             path = self._files[index]
-            points = read_pcd(path) if path.suffix == ".pcd" else read_ply(path)
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)), points=points)
+            yield self._scan(index, lambda: {
+                "points": read_pcd(path) if path.suffix == ".pcd" else read_ply(path)})

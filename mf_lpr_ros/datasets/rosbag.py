@@ -14,7 +14,7 @@ import numpy as np
 
 from mf_lpr_ros.core.pose import interpolate_poses
 from mf_lpr_ros.datasets.base import Scan, Sequence, register_loader
-from mf_lpr_ros.errors import DatasetError, InvalidCloudError
+from mf_lpr_ros.errors import DatasetError
 from mf_lpr_ros.io.messages import pose_message_to_matrix, stamp_to_seconds
 from mf_lpr_ros.io.pointcloud import pointcloud2_to_xyz
 
@@ -50,8 +50,7 @@ def _pick_topic(connections, types: tuple[str, ...], wanted: str | None, what: s
 class RosbagSequence(Sequence):
     layout = "a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)"
     notes = ("read with `rosbags`; `--cloud-topic` / `--pose-topic` default to the only "
-             "PointCloud2 / Odometry-or-Pose topic; an empty or malformed cloud message is a "
-             "scan with nothing to describe, which the tools pass over by name")
+             "PointCloud2 / Odometry-or-Pose topic")
     priority = 10
 
     @classmethod
@@ -127,18 +126,6 @@ class RosbagSequence(Sequence):
     def pose(self, index: int) -> np.ndarray | None:
         return self.poses[index] if self.has_pose(index) else None
 
-    def _scan(self, index: int, message) -> Scan:
-        """The scan of one cloud message; a message with nothing to read (an empty cloud at a
-        driver's start, a malformed one) gives a Scan naming its problem, and the scans after
-        it are read on."""
-        stamp = float(self.stamps[index])
-        try:
-            points = pointcloud2_to_xyz(message)
-        except InvalidCloudError as error:
-            return Scan(index, stamp, self.pose(index),
-                        problem=f"{self.cloud_topic} message {index}: {error}")
-        return Scan(index, stamp, self.pose(index), points=points)
-
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         # Bag order -> time order position, so a single pass serves any requested subset.
         position_of = np.empty_like(self._order)
@@ -155,7 +142,9 @@ class RosbagSequence(Sequence):
                 if index not in wanted:
                     continue
                 message = reader.deserialize(raw, connection.msgtype)
-                pending[index] = self._scan(index, message)
+                # An empty cloud at a driver's start, a malformed one: a scan naming it.
+                pending[index] = self._scan(index, lambda: {"points": pointcloud2_to_xyz(message)},
+                                            f"{self.cloud_topic} message {index}")
                 while expected is not None and expected in pending:
                     yield pending.pop(expected)
                     expected = next(next_index, None)

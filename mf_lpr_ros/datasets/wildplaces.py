@@ -70,8 +70,8 @@ class WildPlacesSequence(Sequence):
     def _read(self, indices: np.ndarray) -> Iterator[Scan]:
         for index in indices:
             path = self._files[index]
-            points = read_pcd(path) if path.suffix == ".pcd" else read_xyzi_bin(path)
-            yield Scan(int(index), float(self.stamps[index]), self.pose(int(index)), points=points)
+            yield self._scan(index, lambda: {
+                "points": read_pcd(path) if path.suffix == ".pcd" else read_xyzi_bin(path)})
 
 
 def read_pose_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -331,8 +331,11 @@ def _back_end_rows(back_end, sequence: RosbagSequence) -> list[tuple[str, str]]:
 def choose_preset(bag: Path) -> str:
     """handheld for close-range scans (median horizontal range < 10 m), else kitti."""
     sequence = RosbagSequence(bag)
-    ranges = np.concatenate([np.hypot(s.points[:, 0], s.points[:, 1])
-                             for s in sequence.iter_scans(range(min(5, len(sequence))))])
+    read = [s for s in sequence.iter_scans(range(min(5, len(sequence)))) if not s.problem]
+    if not read:
+        raise ValueError(f"{bag}: none of its first scans could be read, so no preset can be "
+                         f"chosen from them")
+    ranges = np.concatenate([np.hypot(s.points[:, 0], s.points[:, 1]) for s in read])
     return "handheld" if np.median(ranges) < 10.0 else "kitti"
 
 

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.pose import interpolate_poses, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.datasets import (
     BevPngSequence,
@@ -9,8 +10,9 @@ from mf_lpr_ros.datasets import (
     RosbagSequence,
     open_source,
 )
-from mf_lpr_ros.errors import DatasetError
+from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.io.pcd import read_pcd
+from mf_lpr_ros.pipeline.mapping import describe_scan
 
 
 def write_kitti(folder, n=3, times=None):
@@ -156,10 +158,16 @@ def test_nclt_records_ground_truth_and_frames(tmp_path):
 
 
 def test_nclt_bad_record_size_is_named(tmp_path):
+    """A file that cannot be read is a scan naming its problem (the tools pass over it by
+    name); the files after it are read on."""
     (tmp_path / "velodyne_sync").mkdir()
     (tmp_path / "velodyne_sync" / "100.bin").write_bytes(b"\0" * 12)
-    with pytest.raises(DatasetError, match="multiple of 8 bytes"):
-        list(open_source(tmp_path).iter_scans())
+    (tmp_path / "velodyne_sync" / "200.bin").write_bytes(b"\0" * 16)
+    bad, good = open_source(tmp_path).iter_scans()
+    assert bad.points is None and "100.bin: size is not a multiple of 8 bytes" in bad.problem
+    assert good.problem == "" and good.points.shape == (2, 3)
+    with pytest.raises(InvalidCloudError, match=r"^scan 0 \(stamp .*100.bin: size is not"):
+        describe_scan(bad, preset("default").descriptor, reference=True)
 
 
 def test_mulran_interpolates_ground_truth_at_scan_stamps(tmp_path):

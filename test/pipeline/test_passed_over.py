@@ -1,6 +1,7 @@
-"""Scans with nothing to describe in offline work (an empty cloud at a driver's start, a sensor
-facing an open field): `build-map` (serial and bulk) and `evaluate` pass over them as the live
-nodes and `localise` do, say which, and stop only when nothing at all can be described."""
+"""Scans with nothing to describe in offline work (an empty cloud at a driver's start, a file
+cut short, a sensor facing an open field): `build-map` (serial and bulk) and `evaluate` pass
+over them as the live nodes and `localise` do, say which, and stop only when nothing at all can
+be described."""
 
 from __future__ import annotations
 
@@ -58,14 +59,16 @@ def test_a_bag_message_with_an_empty_cloud_is_a_scan_naming_its_problem(tmp_path
 @pytest.fixture
 def blanked(world, tmp_path):
     """A KITTI sequence of ~1.1 m steps (references every other scan at 2 m) with planned
-    references 3 and 5 blanked, and 5's next scan too: (folder, planned indices, 3's, 5's)."""
+    references 3 and 5 blanked, and 5's next scan a truncated file: (folder, planned indices,
+    3's, 5's)."""
     folder = tmp_path / "first"
     write_kitti_sequence(folder, world, route(200), seed=1)
     planned = plan_references(open_source(folder), preset("kitti")).indices
     third, fifth = int(planned[3]), int(planned[5])
     assert planned[4] > third + 1 and planned[6] == fifth + 2      # the layout the test needs
-    for index in (third, fifth, fifth + 1):
+    for index in (third, fifth):
         _blank(folder, index)
+    (folder / "velodyne" / f"{fifth + 1:06d}.bin").write_bytes(b"\0" * 10)
     return folder, planned, third, fifth
 
 
@@ -83,6 +86,8 @@ def test_a_reference_with_nothing_to_describe_is_taken_from_the_next_scan(blanke
     assert [scan["scan"] for scan in noted["scans"]] == [third, fifth, fifth + 1]
     assert noted["scans"][0]["why"].startswith(f"scan {third} (stamp ")
     assert "no finite point" in noted["scans"][0]["why"]
+    assert noted["scans"][2]["why"].endswith(f"{fifth + 1:06d}.bin: size is not a multiple of 16 "
+                                             f"bytes (x y z intensity)")
 
     [bulk] = build_maps([SourceSpec(str(folder))], preset("kitti"), progress=False)
     assert bulk.source_indices.tolist() == expected
