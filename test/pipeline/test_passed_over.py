@@ -14,6 +14,7 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.datasets import RosbagSequence, open_source
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.evaluation.protocol import Protocol, evaluate_pair
+from mf_lpr_ros.pipeline import localise
 from mf_lpr_ros.pipeline.bulk import SourceSpec, build_maps
 from mf_lpr_ros.pipeline.mapping import (
     NOT_DESCRIBED,
@@ -54,6 +55,17 @@ def test_a_bag_message_with_an_empty_cloud_is_a_scan_naming_its_problem(tmp_path
     with pytest.raises(InvalidCloudError, match=rf"^scan 2 \(stamp {scans[2].stamp:.3f} s\): "
                                                 r"/points message 2: PointCloud2 is empty"):
         describe_scan(scans[2], preset("default").descriptor, reference=True)
+
+    # The whole bag still makes a map (reference 2 from scan 3) and is localised around it.
+    planned = plan_references(RosbagSequence(tmp_path / "day"), preset("default")).indices
+    reference_map = build_map(RosbagSequence(tmp_path / "day"), preset("default"),
+                              progress=False)
+    assert planned.tolist() == [0, 2, 4] and reference_map.source_indices.tolist() == [0, 3, 4]
+    outcomes = localise.localise_sequence(reference_map, RosbagSequence(tmp_path / "day"),
+                                          preset("default").search, progress=False)
+    assert [outcome.match is None for outcome in outcomes] == [False, False, True] + [False] * 3
+    assert outcomes[2].verdict.reason.startswith(f"{NOT_DESCRIBED}scan 2 ")
+    assert np.nanmax([outcome.translation_error_m for outcome in outcomes]) < 0.5
 
 
 @pytest.fixture
