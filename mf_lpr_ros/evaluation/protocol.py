@@ -179,7 +179,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             try:
                 ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
             except InvalidCloudError:
-                pass
+                pass                           # left out of the map (see the docstring)
         if same_sequence and scan.index in wanted_queries:
             describe_query(scan)
     if not same_sequence:
