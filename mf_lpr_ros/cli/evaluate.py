@@ -46,6 +46,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 "recall_published", "recall_at_100_precision", "ms_per_query"):
         value = results[key]
         print(f"{key:>22}: {value:.4f}" if isinstance(value, float) else f"{key:>22}: {value}")
+    if results["queries_not_described"]:
+        print(f"{'queries_not_described':>22}: {results['queries_not_described']} (each a miss; "
+              f"the records' reason says why)")
     return 0
 
 

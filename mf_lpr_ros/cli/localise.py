@@ -55,9 +55,12 @@ def cmd_localise(args: argparse.Namespace) -> int:
                 f"{outcome.translation_error_m:.4f}", f"{outcome.yaw_error_deg:.3f}",
                 f"{outcome.descriptor_ms:.2f}", *stages, outcome.verdict.reason])
     errors = np.array([o.translation_error_m for o in outcomes])
+    not_described = sum(outcome.match is None for outcome in outcomes)
     print(f"wrote {args.out}: {len(outcomes)} queries against {len(reference_map)} references"
           + (f"; median translation error {np.nanmedian(errors):.3f} m"
-             if np.isfinite(errors).any() else ""))
+             if np.isfinite(errors).any() else "")
+          + (f"; {not_described} passed over with nothing to describe (their reason column "
+             f"says why)" if not_described else ""))
     return 0
 
 

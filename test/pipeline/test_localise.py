@@ -60,7 +60,7 @@ def test_a_scan_with_nothing_to_describe_is_named_in_the_error(world, tmp_path):
         describe_scan(scan, banded, reference=False)
 
 
-def test_localise_passes_over_a_scan_it_cannot_describe_and_says_why(world, tmp_path):
+def test_localise_passes_over_a_scan_it_cannot_describe_and_says_why(world, tmp_path, capsys):
     """As the live localiser does: the scans after it are still localised, and the CSV row of
     the one passed over has no match and the reason."""
     write_kitti_sequence(tmp_path / "first", world, route(40), seed=1)
@@ -80,6 +80,7 @@ def test_localise_passes_over_a_scan_it_cannot_describe_and_says_why(world, tmp_
     reference_map.save(tmp_path / "map.mfmap")
     assert main(["localise", str(tmp_path / "map.mfmap"), str(tmp_path / "second"), "--preset",
                  "kitti", "--out", str(tmp_path / "run.csv"), "--quiet"]) == 0
+    assert "; 1 passed over with nothing to describe" in capsys.readouterr().out
     rows = list(csv.DictReader(open(tmp_path / "run.csv")))
     assert len(rows) == 6 and rows[2]["ref_index"] == "" and rows[2]["accepted"] == "0"
     assert rows[2]["reason"].startswith("not described") and rows[3]["ref_index"] != ""

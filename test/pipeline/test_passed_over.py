@@ -128,7 +128,7 @@ def test_a_source_with_nothing_to_describe_is_refused_by_name(world, tmp_path):
         build_map(open_source(folder), preset("kitti"), progress=False)
 
 
-def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path):
+def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path, capsys):
     """A reference that cannot be described is left out of the map (its place stays in the
     ground truth); a query that cannot be described is a miss that says why; the rest are
     matched as before."""
@@ -151,4 +151,9 @@ def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path):
     # Matches confirmed late are marked on their own records, not shifted by the one skipped.
     assert [record.published for record in records] == [False] * 4 + [True] * 4
     assert records[3].reason.startswith("odometry consistency")
+
+    assert main(["evaluate", "--reference", str(tmp_path / "first"), "--query",
+                 str(tmp_path / "second"), "--tolerance", "3", "--preset", "kitti",
+                 "--quiet"]) == 0
+    assert "queries_not_described: 1 (each a miss" in capsys.readouterr().out
     assert np.isfinite(result.summary["ms_per_query"])
