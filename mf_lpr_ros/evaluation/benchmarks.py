@@ -198,10 +198,11 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
     Suite("sensors",
           "The presets auto, default, livox and handheld on simulated sensors and mounts the "
           "tuning suite does not hold (sim.simulator.SENSOR_WORLDS: a VLP-16, a Mid-360 and a "
-          "handheld HDL-32 in the forest; an HDL-32, a 70-degree Avia, a VLP-16 0.4 m up, a "
-          "Mid-360 on a roof and a handheld VLP-16 in a town), day 2 off the grid against day "
-          "1, 5 m: a check after a default changes (no preset may publish a false closure; "
-          "auto should do what default does or better), not a set to choose defaults on",
+          "handheld HDL-32, Mid-360 and 64-beam sensor in the forest; an HDL-32, a 70-degree "
+          "Avia on a robot and in the hand, a VLP-16 0.4 m up, a Mid-360 on a roof, a handheld "
+          "VLP-16 and a car's OS1-64 in a town), day 2 off the grid against day 1, 5 m: a "
+          "check after a default changes (no preset may publish a false closure; auto should "
+          "do what default does or better), not a set to choose defaults on",
           tuple(Rule("simulated", name, Protocol(5.0), tuple(SENSOR_WORLDS), by_preset=True)
                 for name in _SENSOR_PRESETS)),
     Suite("shared-data",

@@ -79,6 +79,14 @@ HANDHELD_VLP16 = dataclasses.replace(VLP16, name="VLP-16 (handheld)", mount_heig
 HANDHELD_HDL32 = dataclasses.replace(HDL32, name="HDL-32 (handheld)", mount_height_m=1.3)
 
 
+# The suite "sensors" (sim.simulator.SENSOR_WORLDS) from session 38: the Avia held in the hand
+# (the held-out Avia sessions' mount), and a dense 64-beam sensor on a car (an Ouster OS1-64's
+# 33 degrees of elevation).
+HANDHELD_AVIA = dataclasses.replace(AVIA, name="Avia (handheld)", mount_height_m=1.3)
+CAR_OS64 = SensorModel("OS1-64", tuple(np.linspace(-16.6, 16.6, 64)), azimuth_step_deg=0.35,
+                       max_range_m=120.0, mount_height_m=1.9)
+
+
 # A dense 360-degree sensor held in the hand (an Ouster OS0-64's 90-degree vertical field):
 # sim.simulator.WORLDS["dense_handheld"] sways it. The generalisation issue's unseen set was
 # such a sensor, and the `handheld` preset published false closures on it.
