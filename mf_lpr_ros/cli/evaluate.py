@@ -49,6 +49,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if results["queries_not_described"]:
         print(f"{'queries_not_described':>22}: {results['queries_not_described']} (each a miss; "
               f"the records' reason says why)")
+    if results["references_not_described"]:
+        print(f"{'references_not_described':>22}: {results['references_not_described']} (left "
+              f"out of the map; a query at their place misses)")
     return 0
 
 

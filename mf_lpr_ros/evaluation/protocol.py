@@ -140,9 +140,18 @@ def revisits(stamps: np.ndarray, positions: np.ndarray, spacing_m: float,
     return found
 
 
+@dataclass
+class ProtocolRun:
+    """What run_protocol gives: one record per query, and the scan indices of the references
+    left out of the map (nothing to describe)."""
+
+    records: list[QueryRecord]
+    references_left_out: list[int]
+
+
 def run_protocol(method, reference: Sequence, selection: Selection, *,
                  query: Sequence | None = None, truth_poses: np.ndarray | None = None,
-                 progress: bool = True) -> list[QueryRecord]:
+                 progress: bool = True) -> ProtocolRun:
     """One record per query (see summarise) for method under a selection.
 
     The method sees the sequences' poses (the map's poses, each query's odometry and the
@@ -250,7 +259,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             confirmed = records[searched_records[earlier]]
             confirmed.published = True
             confirmed.reason = reason_when_confirmed(confirmed.reason)
-    return records
+    return ProtocolRun(records, selection.references[~described].tolist())
 
 
 def _not_searched(query_index: int, stamp: float, truth: np.ndarray, distances: np.ndarray,
@@ -316,9 +325,10 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     if not headings_known:
         config = replace(config, search=replace(config.search, map_headings="unknown"))
     runner = make_method(method, config)
-    records = run_protocol(runner, reference, selection, query=query, progress=progress)
-    summary = summarise(records, protocol.tolerance_m, len(selection.references),
+    run = run_protocol(runner, reference, selection, query=query, progress=progress)
+    summary = summarise(run.records, protocol.tolerance_m, len(selection.references),
                         poses_scored=headings_known)
+    summary["references_not_described"] = len(run.references_left_out)
     if profile is not None:
         summary["auto"] = map_metadata(profile, config.descriptor)
-    return PairResult(runner.name, summary, records)
+    return PairResult(runner.name, summary, run.records)

@@ -101,7 +101,7 @@ def slam_eval(sequence: Sequence, config: Config, protocol: Protocol, *,
 
     selection = select(drifted, protocol, config.spacing_m)
     records = run_protocol(MatchedFilterMethod(config), drifted, selection,
-                           truth_poses=sequence.poses, progress=progress)
+                           truth_poses=sequence.poses, progress=progress).records
     positives = sum(record.nearest_reference_m <= protocol.tolerance_m for record in records)
 
     key_of = {int(frame): key for key, frame in enumerate(frames)}

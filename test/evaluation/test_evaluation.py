@@ -120,7 +120,8 @@ def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(
         return SimpleNamespace(name=name)
 
     monkeypatch.setattr(protocol_module, "make_method", method_of)
-    monkeypatch.setattr(protocol_module, "run_protocol", lambda *args, **kwargs: [])
+    monkeypatch.setattr(protocol_module, "run_protocol",
+                        lambda *args, **kwargs: protocol_module.ProtocolRun([], []))
     monkeypatch.setattr(protocol_module, "summarise",
                         lambda records, tolerance_m, n_references, poses_scored:
                         {"poses_scored": poses_scored})

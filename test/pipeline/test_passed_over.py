@@ -141,6 +141,7 @@ def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path, ca
                            query=open_source(tmp_path / "second"), progress=False)
     records = result.records
     assert len(records) == 8 and result.summary["queries_not_described"] == 1
+    assert result.summary["references_not_described"] == 1
     assert records[2].reference_index == -1 and not records[2].published
     assert records[2].reason.startswith(f"{NOT_DESCRIBED}scan 2 (stamp ")
     # Query 1 is at reference 5's place, which the map lacks: a positive that can only miss.
@@ -155,5 +156,7 @@ def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path, ca
     assert main(["evaluate", "--reference", str(tmp_path / "first"), "--query",
                  str(tmp_path / "second"), "--tolerance", "3", "--preset", "kitti",
                  "--quiet"]) == 0
-    assert "queries_not_described: 1 (each a miss" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "queries_not_described: 1 (each a miss" in printed
+    assert "references_not_described: 1 (left out of the map" in printed
     assert np.isfinite(result.summary["ms_per_query"])
