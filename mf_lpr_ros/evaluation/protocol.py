@@ -32,7 +32,7 @@ from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.evaluation.methods import make_method
 from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
-from mf_lpr_ros.pipeline.mapping import NOT_DESCRIBED
+from mf_lpr_ros.pipeline.mapping import not_described
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
@@ -161,7 +161,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     A scan with nothing to describe (InvalidCloudError) is passed over, as the live nodes and
     `localise` pass over it: a reference is left out of the map (its place is still in the
     protocol's ground truth, so a query there can only miss), a query is recorded as a miss
-    whose reason begins NOT_DESCRIBED.
+    whose reason says so (mapping.not_described).
     """
     same_sequence = query is None
     reference = with_submaps(reference, method.submap_window)
@@ -169,7 +169,8 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     wanted_refs = {int(i): k for k, i in enumerate(selection.references)}
     wanted_queries = set(selection.queries.tolist())
     ref_descriptors: list = [None] * len(wanted_refs)
-    # Per query scan: its descriptor (None: not described), the time it took, why not.
+    # Per query scan: its descriptor (None: not described), the time it took, the reason why
+    # not.
     query_descriptors: dict[int, tuple[Any, float, str]] = {}
 
     def describe_query(scan: Scan) -> None:
@@ -177,7 +178,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
         try:
             descriptor, problem = method.describe(scan, reference=False), ""
         except InvalidCloudError as error:
-            descriptor, problem = None, str(error)
+            descriptor, problem = None, not_described(error)
         query_descriptors[scan.index] = (descriptor, (time.perf_counter() - started) * 1e3,
                                          problem)
 
@@ -225,7 +226,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
         if descriptor is None or not n_described:
             records.append(_not_searched(
                 int(query_index), float(query_seq.stamps[query_index]), truth, distances,
-                descriptor_ms, f"{NOT_DESCRIBED}{problem}" if descriptor is None
+                descriptor_ms, problem if descriptor is None
                 else "no reference it may match could be described"))
             continue
         searched_records.append(len(records))

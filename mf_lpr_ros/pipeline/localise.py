@@ -18,7 +18,7 @@ from mf_lpr_ros.core.verification import MatchVerifier, Verdict, confirmed_later
 from mf_lpr_ros.datasets import Sequence
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import SearchParams
-from mf_lpr_ros.pipeline.mapping import NOT_DESCRIBED, describe_scan, prepared_points
+from mf_lpr_ros.pipeline.mapping import describe_scan, not_described, prepared_points
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
@@ -81,7 +81,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
             # The verifier still travels with the scan's odometry.
             verifier.verify(None, planar(scan.pose) if odometry_known else None)
             outcomes.append(QueryOutcome(scan.index, scan.stamp, None, math.nan,
-                                         Verdict(False, f"{NOT_DESCRIBED}{error}"), truth))
+                                         Verdict(False, not_described(error)), truth))
             continue
         descriptor_ms = (time.perf_counter() - started) * 1e3
         match = index.query(occupancy, sensor_offset_m=scan.sensor_offset_m, request=True)

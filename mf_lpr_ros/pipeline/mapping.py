@@ -35,6 +35,11 @@ from mf_lpr_ros.progress import progress_bar
 NOT_DESCRIBED = "not described: "
 
 
+def not_described(error: InvalidCloudError) -> str:
+    """The reason given for a query with nothing to describe (describe_scan's error)."""
+    return f"{NOT_DESCRIBED}{error}"
+
+
 def describe_scan(scan: Scan, params: DescriptorParams, *, reference: bool) -> np.ndarray:
     """Occupancy of a scan, from its points or its ready density image. A scan with nothing to
     describe (Scan.problem, or nothing finite in the window) raises InvalidCloudError naming
