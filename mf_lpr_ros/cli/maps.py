@@ -70,7 +70,7 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
 
 
 def _warn_passed_over(reference_map: ReferenceMap) -> None:
-    from mf_lpr_ros.pipeline.mapping import passed_over_summary
+    from mf_lpr_ros.core.references import passed_over_summary
 
     summary = passed_over_summary(reference_map.metadata)
     if summary is not None:

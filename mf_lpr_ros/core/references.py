@@ -4,7 +4,8 @@ Offline maps (pipeline.mapping.build_map), maps described in parallel (pipeline.
 map builder (live.map_builder.MapBuilder) and the evaluation's MF-LPR method all use these:
 SpacingGate keeps one scan per spacing_m of travel, descriptor_points levels a scan when the
 descriptor asks for it, describe_observation turns points or a density image into occupancy,
-and add_references appends described scans and records their common sensor offset.
+and add_references appends described scans and records their common sensor offset. A scan
+that could not be described is passed over, and the map's metadata says so (PassedOver).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, stamp_seed_key
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import level_points
-from mf_lpr_ros.errors import InvalidPoseError
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 
 
@@ -111,3 +112,58 @@ def record_sensor_offset(reference_map: ReferenceMap, offsets: set[float]) -> No
     offset = offsets.pop() if offsets else 0.0
     if offset:
         reference_map.metadata["sensor_offset_m"] = offset
+
+
+@dataclass(frozen=True)
+class PassedOver:
+    """A scan a map's build passed over, and why: nothing inside the descriptor's window and
+    height band, a file or message that could not be read, or (the map builder node) a message
+    it rejected."""
+
+    index: int
+    stamp: float
+    why: str
+
+    def to_dict(self) -> dict:
+        return {"scan": self.index, "stamp": self.stamp, "why": self.why}
+
+
+# Where a map's metadata notes the scans its build passed over, and how many it lists by name
+# (the count covers them all).
+PASSED_OVER_KEY = "scans_passed_over"
+PASSED_OVER_LISTED = 20
+
+
+def note_passed_over(reference_map: ReferenceMap, passed_over: list[PassedOver],
+                     source: str) -> None:
+    """Notes in the map's metadata the scans of source its build passed over: all in the
+    count, the first PASSED_OVER_LISTED by name."""
+    if not passed_over:
+        return
+    noted = reference_map.metadata.setdefault(PASSED_OVER_KEY, {"count": 0, "scans": []})
+    noted["count"] += len(passed_over)
+    room = max(PASSED_OVER_LISTED - len(noted["scans"]), 0)
+    noted["scans"] += [dict(scan.to_dict(), source=source) for scan in passed_over[:room]]
+
+
+def record_passed_over(reference_map: ReferenceMap, passed_over: list[PassedOver], added: int,
+                       source: str) -> None:
+    """note_passed_over for an offline build that added `added` references from source; a
+    source none of whose references could be described is refused, naming the first scan's
+    problem."""
+    if passed_over and not added:
+        raise InvalidCloudError(f"{source}: no reference could be described; "
+                                f"{len(passed_over)} scan(s) had nothing to describe, the "
+                                f"first: {passed_over[0].why}")
+    note_passed_over(reference_map, passed_over, source)
+
+
+def passed_over_summary(metadata: dict) -> str | None:
+    """One line for a map's builder: how many scans it passed over and the first one's problem
+    (None when it passed over none)."""
+    noted = metadata.get(PASSED_OVER_KEY)
+    if not noted:
+        return None
+    return (f"passed over {noted['count']} scan(s) with nothing to describe (a reference's "
+            f"taken from the next scan that has something; the map's metadata lists them); "
+            f"the first: {noted['scans'][0]['why']}")

@@ -1,7 +1,8 @@
 """The methods compared under the evaluation protocol: MF-LPR (ours), Scan Context, MapClosures.
 
-Each describes scans (describe), takes the references' descriptors (build) and answers a query
-among the first n_active references (query) with a Retrieval. A method's submap_window says
+Each describes scans (describe), takes the references' descriptors (build), answers a query
+among the first n_active references (query) with a Retrieval, and is told of a query the
+protocol could not search (pass_over, with its odometry). A method's submap_window says
 which local map it describes (core.submap; None: single scans): the protocol reads the
 sequences through it.
 """
@@ -81,6 +82,11 @@ class MatchedFilterMethod:
                                        submap_m=self.config.descriptor.submap_m)
         self._queries = 0
 
+    def pass_over(self, odometry: np.ndarray) -> None:
+        """A query that could not be searched: the verifier still travels with its odometry,
+        as `localise`'s does (odometry consistency counts travel step by step)."""
+        self._verifier.verify(None, odometry)
+
     def query(self, descriptor: DescribedScan, n_active: int, odometry: np.ndarray
               ) -> Retrieval:
         match = self._index.query(descriptor.occupancy, n_active=n_active,
@@ -99,7 +105,14 @@ class MatchedFilterMethod:
                          match.place_similarity)
 
 
-class ScanContextMethod:
+class _IndependentQueries:
+    """A baseline whose answer to a query depends on no earlier query."""
+
+    def pass_over(self, odometry: np.ndarray) -> None:
+        """Nothing carries over to the next query."""
+
+
+class ScanContextMethod(_IndependentQueries):
     """Scan Context (Kim and Kim, IROS 2018): the matched reference's position with the Scan
     Context yaw, so its corrected recall is its retrieval recall. Confidence: 1 - distance."""
 
@@ -130,7 +143,7 @@ class ScanContextMethod:
                          searched=candidates)
 
 
-class MapClosuresMethod:
+class MapClosuresMethod(_IndependentQueries):
     """MapClosures (Gupta et al., the map-closures package): ORB features of BEV density maps in
     an HBST tree, then RANSAC. Fed as its own pipeline feeds it: local maps, not single scans.
     Each scan's local map holds the scans of the last local_map_m metres of travel, put in that

@@ -161,7 +161,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     A scan with nothing to describe (InvalidCloudError) is passed over, as the live nodes and
     `localise` pass over it: a reference is left out of the map (its place is still in the
     protocol's ground truth, so a query there can only miss), a query is recorded as a miss
-    whose reason says so (mapping.not_described).
+    whose reason says so (mapping.not_described), and the method is told (pass_over).
     """
     same_sequence = query is None
     reference = with_submaps(reference, method.submap_window)
@@ -224,6 +224,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
         distances = np.linalg.norm(ref_planar[:n_active, :2] - truth[:2], axis=1)
         n_described = int(described_before[n_active])
         if descriptor is None or not n_described:
+            method.pass_over(planar(query_seq.poses[query_index]))
             records.append(_not_searched(
                 int(query_index), float(query_seq.stamps[query_index]), truth, distances,
                 descriptor_ms, problem if descriptor is None

@@ -19,11 +19,13 @@ from mf_lpr_ros.core.auto_params import (
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import (
     DescribedScan,
+    PassedOver,
     SpacingGate,
     add_references,
     describe_observation,
     descriptor_points,
     keeps_clouds,
+    note_passed_over,
 )
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
@@ -44,6 +46,8 @@ class MapBuilder:
     Every scan offered joins the submap window (core.submap) when the descriptor has one, so a
     reference is described from the scans of its last descriptor.submap_m metres; a caller
     that already keeps the same window (the loop-closure localiser) passes it as submap.
+    A scan offer refuses (or the node rejects, pass_over) is noted in the map's metadata as the
+    offline build notes the scans it passes over (core.references.PassedOver).
     """
 
     def __init__(self, config: Config, map_path: str | Path | None, *, frame_id: str = "map",
@@ -62,6 +66,7 @@ class MapBuilder:
         self._sampled: list[PairedScan] | None = (
             [] if not config.auto and config.descriptor.submap_m <= 0 else None)
         self.rejected_while_held = 0
+        self._passed_over_unsaved = False
         self._held: list[PairedScan] | None = None
         if reference_map is None:
             reference_map = ReferenceMap(config.descriptor, frame_id=frame_id,
@@ -94,7 +99,20 @@ class MapBuilder:
             return self.derive_auto() if len(self._held) >= SAMPLE_SCANS else None
         if self._sampled is not None:
             self._sample(scan)
-        return self._offer(scan)
+        return self._offer_noting(scan)
+
+    def pass_over(self, index: int, stamp: float, why: str) -> None:
+        """Notes in the map's metadata a scan that was not used, and why (saved with the map)."""
+        note_passed_over(self.map, [PassedOver(index, stamp, why)], "map_builder")
+        self._passed_over_unsaved = True
+
+    def _offer_noting(self, scan: PairedScan) -> int | None:
+        """_offer, noting a scan it refuses (pass_over) before the error propagates."""
+        try:
+            return self._offer(scan)
+        except (InvalidCloudError, InvalidPoseError, ValueError) as error:
+            self.pass_over(scan.index, scan.stamp, str(error))
+            raise
 
     def _sample(self, scan: PairedScan) -> None:
         """Keeps the scan for the single-scan check until SAMPLE_SCANS are kept, then checks."""
@@ -137,7 +155,7 @@ class MapBuilder:
         last = None
         for scan in held:
             try:
-                index = self._offer(scan)
+                index = self._offer_noting(scan)
             except (InvalidCloudError, InvalidPoseError, ValueError):
                 self.rejected_while_held += 1
                 continue
@@ -162,7 +180,13 @@ class MapBuilder:
 
     @property
     def unsaved(self) -> int:
+        """References not yet on disk."""
         return len(self.map) - self.saved_references
+
+    @property
+    def needs_save(self) -> bool:
+        """References, or scans passed over beside some, not yet on disk."""
+        return self.unsaved > 0 or (self._passed_over_unsaved and len(self.map) > 0)
 
     def save(self) -> int:
         """Writes the map (temporary file, fsync, rename); returns the references now on disk.
@@ -173,6 +197,7 @@ class MapBuilder:
         count = len(self.map)
         self.map.save(self.map_path)
         self.saved_references = count
+        self._passed_over_unsaved = False
         return count
 
 

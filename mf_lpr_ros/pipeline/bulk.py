@@ -15,17 +15,21 @@ import numpy as np
 
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.references import DescribedScan, add_references, keeps_clouds
+from mf_lpr_ros.core.references import (
+    DescribedScan,
+    PassedOver,
+    add_references,
+    keeps_clouds,
+    record_passed_over,
+)
 from mf_lpr_ros.core.submap import SubmapWindow
 from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.pipeline.distributed import run_units
 from mf_lpr_ros.pipeline.mapping import (
-    PassedOver,
     ReferencePlan,
     describe_references,
     described_scan,
     plan_references,
-    record_passed_over,
 )
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar

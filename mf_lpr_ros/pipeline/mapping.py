@@ -18,10 +18,12 @@ from mf_lpr_ros.core.auto_params import (
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import (
     DescribedScan,
+    PassedOver,
     add_references,
     describe_observation,
     descriptor_points,
     keeps_clouds,
+    record_passed_over,
     select_references,
 )
 from mf_lpr_ros.core.submap import SubmapWindow
@@ -82,24 +84,6 @@ def described_scan(scan: Scan, params: DescriptorParams, *, reference: bool = Tr
                          scan.sensor_offset_m)
 
 
-@dataclass(frozen=True)
-class PassedOver:
-    """A scan a map's build passed over: it had nothing to describe (why)."""
-
-    index: int
-    stamp: float
-    why: str
-
-    def to_dict(self) -> dict:
-        return {"scan": self.index, "stamp": self.stamp, "why": self.why}
-
-
-# Where a map's metadata notes the scans its build passed over, and how many it lists by name
-# (the count covers them all).
-PASSED_OVER_KEY = "scans_passed_over"
-PASSED_OVER_LISTED = 20
-
-
 def describe_references(sequence: Sequence, indices: np.ndarray, ends: np.ndarray,
                         describe: Callable[[Scan], DescribedScan], *, progress: bool = False
                         ) -> tuple[list[DescribedScan], list[PassedOver]]:
@@ -131,34 +115,6 @@ def describe_references(sequence: Sequence, indices: np.ndarray, ends: np.ndarra
         if reference is not None:
             described.append(reference)
     return described, passed_over
-
-
-def record_passed_over(reference_map: ReferenceMap, passed_over: list[PassedOver], added: int,
-                       source: str) -> None:
-    """Notes in the map's metadata the scans of source its build passed over, when any, having
-    added `added` references from source; a source none of whose references could be described
-    is refused, naming the first scan's problem."""
-    if not passed_over:
-        return
-    if not added:
-        raise InvalidCloudError(f"{source}: no reference could be described; "
-                                f"{len(passed_over)} scan(s) had nothing to describe, the "
-                                f"first: {passed_over[0].why}")
-    noted = reference_map.metadata.setdefault(PASSED_OVER_KEY, {"count": 0, "scans": []})
-    noted["count"] += len(passed_over)
-    room = max(PASSED_OVER_LISTED - len(noted["scans"]), 0)
-    noted["scans"] += [dict(scan.to_dict(), source=source) for scan in passed_over[:room]]
-
-
-def passed_over_summary(metadata: dict) -> str | None:
-    """One line for a map's builder: how many scans it passed over and the first one's problem
-    (None when it passed over none)."""
-    noted = metadata.get(PASSED_OVER_KEY)
-    if not noted:
-        return None
-    return (f"passed over {noted['count']} scan(s) with nothing to describe (a reference's "
-            f"taken from the next scan that has something; the map's metadata lists them); "
-            f"the first: {noted['scans'][0]['why']}")
 
 
 @dataclass

@@ -87,11 +87,15 @@ class LidarNodeMixin(NodeParameters):
             except (InvalidCloudError, ValueError, TypeError) as error:
                 problem = str(error)
         if problem is not None:
-            self.counters["scans_rejected"] += 1
-            self.log_problem("scan", f"scan rejected: {problem}")
+            self.reject_scan(stamp, problem)
             return None
         self._last_scan_stamp = stamp
         return stamp, points
+
+    def reject_scan(self, stamp: float, problem: str) -> None:
+        """A received scan is not used: counted and logged (a node may note it too)."""
+        self.counters["scans_rejected"] += 1
+        self.log_problem("scan", f"scan at {stamp:.3f} rejected: {problem}")
 
     def now_seconds(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9

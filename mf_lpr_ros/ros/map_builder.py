@@ -146,6 +146,13 @@ class MapBuilderNode(LidarNode):
         self._next_index += 1
         self._pair()
 
+    def reject_scan(self, stamp: float, problem: str) -> None:
+        super().reject_scan(stamp, problem)
+        if self.builder is not None:
+            # Scans are numbered as they arrive, the rejected ones too.
+            self.builder.pass_over(self._next_index, stamp, problem)
+            self._next_index += 1
+
     def _pair(self, final: bool = False) -> None:
         if not self.settings.inputs.map_frame_id and self.pose_frame_id:
             self.builder.map.frame_id = self.pose_frame_id
@@ -181,7 +188,7 @@ class MapBuilderNode(LidarNode):
                 self.counters["scans_rejected"] += self.builder.rejected_while_held
 
     def _periodic_save(self) -> None:
-        if self.builder.unsaved:
+        if self.builder.needs_save:
             self.save()
 
     def save(self) -> bool:
@@ -210,7 +217,7 @@ class MapBuilderNode(LidarNode):
                 self.get_logger().error(f"preset auto: {error}; no map written")
                 return
             self._report_auto()
-        if self.builder.unsaved or not self.builder.map_path.exists():
+        if self.builder.needs_save or not self.builder.map_path.exists():
             self.save()
         dropped = self.synchroniser.dropped_without_pose
         self.get_logger().info(

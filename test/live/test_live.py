@@ -11,8 +11,9 @@ import pytest
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import euler_pose, planar, planar_error, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.references import PASSED_OVER_KEY
 from mf_lpr_ros.core.verification import VOUCHED
-from mf_lpr_ros.errors import InvalidPoseError, MapParameterMismatch
+from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapParameterMismatch
 from mf_lpr_ros.live.localiser import UNLEVELLED, Localiser, relocalised_pose
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan, PoseBuffer, ScanPoseSynchroniser
@@ -108,6 +109,25 @@ def test_map_builder_keeps_one_reference_per_spacing_and_survives_a_failed_save(
         builder.save()
     assert builder.unsaved == 1 and len(builder.map) == 6
     assert len(ReferenceMap.load(tmp_path / "m.mfmap")) == 5
+
+
+def test_a_scan_the_map_builder_refuses_is_noted_and_saved_with_the_map(world, tmp_path):
+    """A scan with nothing inside the window raises, and is noted in the map's metadata; a note
+    alone is saved when the map has references (none is lost at shutdown), not before."""
+    rng = np.random.default_rng(2)
+    builder = MapBuilder(CONFIG, tmp_path / "m.mfmap")
+    points, pose = scan_world(world, 0.0, 0.0, 0.0, rng)
+    with pytest.raises(InvalidCloudError):
+        builder.offer(PairedScan(0, 0.0, points + 900.0, pose))
+    assert builder.map.metadata[PASSED_OVER_KEY]["count"] == 1 and not builder.needs_save
+    assert builder.offer(PairedScan(1, 1.0, points, pose)) == 0    # the next scan instead
+    assert builder.save() == 1 and not builder.needs_save
+    builder.pass_over(2, 2.0, "frame 'lidar' is not the configured sensor_frame_id 'velodyne'")
+    assert builder.needs_save and builder.unsaved == 0
+    builder.save()
+    noted = ReferenceMap.load(tmp_path / "m.mfmap").metadata[PASSED_OVER_KEY]
+    assert noted["count"] == 2 and [scan["scan"] for scan in noted["scans"]] == [0, 2]
+    assert "sensor_frame_id" in noted["scans"][1]["why"]
 
 
 def test_a_map_keeps_the_clouds_its_verification_needs(world, tmp_path):

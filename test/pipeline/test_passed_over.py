@@ -11,14 +11,16 @@ import pytest
 from mf_lpr_ros.cli import main
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.pose import planar
+from mf_lpr_ros.core.references import PASSED_OVER_KEY
 from mf_lpr_ros.datasets import RosbagSequence, open_source
 from mf_lpr_ros.errors import InvalidCloudError
-from mf_lpr_ros.evaluation.protocol import Protocol, evaluate_pair
+from mf_lpr_ros.evaluation.methods import MatchedFilterMethod
+from mf_lpr_ros.evaluation.protocol import Protocol, evaluate_pair, run_protocol, select
 from mf_lpr_ros.pipeline import localise
 from mf_lpr_ros.pipeline.bulk import SourceSpec, build_maps
 from mf_lpr_ros.pipeline.mapping import (
     NOT_DESCRIBED,
-    PASSED_OVER_KEY,
     build_map,
     describe_scan,
     plan_references,
@@ -160,3 +162,29 @@ def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path, ca
     assert "queries_not_described: 1 (each a miss" in printed
     assert "references_not_described: 1 (left out of the map" in printed
     assert np.isfinite(result.summary["ms_per_query"])
+
+
+def test_evaluate_moves_the_verifier_over_a_query_it_cannot_search(world, tmp_path):
+    """As `localise` does: odometry consistency counts travel step by step, so a query passed
+    over is still a step (the route bends: skipping it would shorten the travel)."""
+    write_kitti_sequence(tmp_path / "first", world, route(40), seed=1)
+    write_kitti_sequence(tmp_path / "second", world, route(8, lateral_offset_m=1.0), seed=2)
+    _blank(tmp_path / "second", 2)
+    config = preset("kitti")
+    reference, query = open_source(tmp_path / "first"), open_source(tmp_path / "second")
+    passed = []
+
+    class Recording(MatchedFilterMethod):
+        def pass_over(self, odometry):
+            passed.append(odometry)
+            super().pass_over(odometry)
+
+    method = Recording(config)
+    selection = select(reference, Protocol(tolerance_m=3.0), config.spacing_m, query=query)
+    run_protocol(method, reference, selection, query=query, progress=False)
+    odometry = planar(query.poses)
+    assert len(passed) == 1 and np.allclose(passed[0], odometry[2])
+    steps = np.hypot(*np.diff(odometry[:, :2], axis=0).T)
+    assert method._verifier.consistency.travelled_m == pytest.approx(steps.sum())
+    merged = np.hypot(*(odometry[3, :2] - odometry[1, :2])) + steps[[0, 3, 4, 5, 6]].sum()
+    assert steps.sum() > merged + 0.5

@@ -1,4 +1,5 @@
-"""The map builder node under faults: a full disk, an unwritable path, bad poses."""
+"""The map builder node under faults: a full disk, an unwritable path, bad poses, scans it
+cannot use."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from sensor_msgs.msg import PointCloud2
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.references import PASSED_OVER_KEY
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.sim.synthetic import scan_world
@@ -132,3 +134,34 @@ def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world,
     # A dense 360-degree sensor: the default voxel and band, its levelling decided (upright).
     assert "as given (a dense 360-degree sensor)" in saved.metadata["auto"]["choice"]
     assert saved.params == dataclasses.replace(preset("default").descriptor, level=False)
+
+
+def test_scans_the_node_could_not_use_are_listed_in_the_map(ros_graph, world, tmp_path):
+    """An empty message (rejected at decoding) and a scan with nothing inside the descriptor's
+    window (refused when described) are noted in the saved map's metadata, numbered as they
+    arrived, as build-map notes the scans it passes over; the next scan is the reference."""
+    map_path = tmp_path / "noted.mfmap"
+    builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(map_path))
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(5)
+    for index in range(5):
+        points, pose = scan_world(world, 3.0 * max(index - 2, 0), 0.0, 0.0, rng)
+        if index == 0:
+            points = points[:0]
+        elif index == 1:
+            points = points + np.array([900.0, 0.0, 0.0], dtype=points.dtype)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(15.0), "map", "velodyne", np.eye(4)))
+    assert ros_graph.wait_for(lambda: len(builder.builder.map) == 3
+                              and builder.counters["scans_rejected"] == 2)
+    builder.finish()
+    saved = ReferenceMap.load(map_path)
+    noted = saved.metadata[PASSED_OVER_KEY]
+    assert noted["count"] == 2
+    assert [(scan["scan"], scan["stamp"], scan["source"]) for scan in noted["scans"]] == [
+        (0, 10.0, "map_builder"), (1, 11.0, "map_builder")]
+    assert "empty" in noted["scans"][0]["why"]
+    assert "window" in noted["scans"][1]["why"]
+    assert saved.source_indices.tolist() == [2, 3, 4]
