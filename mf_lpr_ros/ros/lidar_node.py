@@ -95,7 +95,8 @@ class LidarNodeMixin(NodeParameters):
     def reject_scan(self, stamp: float, problem: str) -> None:
         """A received scan is not used: counted and logged (a node may note it too)."""
         self.counters["scans_rejected"] += 1
-        self.log_problem("scan", f"scan at {stamp:.3f} rejected: {problem}")
+        # No stamp in the text: log_problem repeats an identical problem only every few seconds.
+        self.log_problem("scan", f"scan rejected: {problem}")
 
     def now_seconds(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
