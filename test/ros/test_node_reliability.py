@@ -165,3 +165,31 @@ def test_scans_the_node_could_not_use_are_listed_in_the_map(ros_graph, world, tm
     assert "empty" in noted["scans"][0]["why"]
     assert "window" in noted["scans"][1]["why"]
     assert saved.source_indices.tolist() == [2, 3, 4]
+
+
+def test_a_stream_of_scans_in_a_foreign_frame_is_counted_each_and_logged_once(ros_graph,
+                                                                               tmp_path):
+    """A driver publishing in the wrong frame at 10 Hz: every scan counted and listed, the
+    warning not repeated for each (a scan's stamp must not make the same problem look new)."""
+    builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(tmp_path / "m.mfmap"),
+                              sensor_frame_id="velodyne")
+    warnings = []
+
+    class Recording:
+        def __getattr__(self, name):
+            return lambda *args, **kwargs: None
+
+        def warning(self, text):
+            warnings.append(text)
+
+    builder.get_logger = Recording
+    clouds = ros_graph.publisher(PointCloud2, "points")
+    ros_graph.wait_for_subscribers(clouds)
+    points = np.random.default_rng(6).uniform(-20, 20, (500, 3)).astype(np.float32)
+    for index in range(5):
+        clouds.publish(points_to_pointcloud2(points, seconds_to_stamp(10.0 + 0.1 * index),
+                                             "os_lidar"))
+    assert ros_graph.wait_for(lambda: builder.counters["scans_rejected"] == 5)
+    assert builder.builder.map.metadata[PASSED_OVER_KEY]["count"] == 5
+    assert warnings == ["scan rejected: frame 'os_lidar' is not the configured sensor_frame_id "
+                        "'velodyne'"]
