@@ -17,6 +17,7 @@ from mf_lpr_ros.cli.common import (
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import SINGLE_SCAN_WARNING_KEY
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.references import passed_over_summary
 from mf_lpr_ros.datasets import open_source
 
 
@@ -70,8 +71,6 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
 
 
 def _warn_passed_over(reference_map: ReferenceMap) -> None:
-    from mf_lpr_ros.core.references import passed_over_summary
-
     summary = passed_over_summary(reference_map.metadata)
     if summary is not None:
         print(f"warning: {summary}", file=sys.stderr)

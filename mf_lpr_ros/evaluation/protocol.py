@@ -223,15 +223,16 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
         truth = planar(truth_poses[query_index])
         distances = np.linalg.norm(ref_planar[:n_active, :2] - truth[:2], axis=1)
         n_described = int(described_before[n_active])
+        odometry = planar(query_seq.poses[query_index])
         if descriptor is None or not n_described:
-            method.pass_over(planar(query_seq.poses[query_index]))
+            method.pass_over(odometry)
             records.append(_not_searched(
                 int(query_index), float(query_seq.stamps[query_index]), truth, distances,
                 descriptor_ms, problem if descriptor is None
                 else "no reference it may match could be described"))
             continue
         searched_records.append(len(records))
-        retrieval = method.query(descriptor, n_described, planar(query_seq.poses[query_index]))
+        retrieval = method.query(descriptor, n_described, odometry)
         found = int(in_map[retrieval.reference]) if retrieval.reference >= 0 else -1
         rte, rre = planar_error(retrieval.pose, truth) if found >= 0 else (math.inf, math.inf)
         records.append(QueryRecord(

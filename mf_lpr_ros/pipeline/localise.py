@@ -74,12 +74,13 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
                              enabled=progress, unit="scan"):
         posed = scan.pose is not None and np.isfinite(scan.pose).all()
         truth = planar(scan.pose) if posed else None
+        odometry = truth if odometry_known else None
         started = time.perf_counter()
         try:
             occupancy = describe_scan(scan, reference_map.params, reference=False)
         except InvalidCloudError as error:
             # The verifier still travels with the scan's odometry.
-            verifier.verify(None, planar(scan.pose) if odometry_known else None)
+            verifier.verify(None, odometry)
             outcomes.append(QueryOutcome(scan.index, scan.stamp, None, math.nan,
                                          Verdict(False, not_described(error)), truth))
             continue
@@ -91,8 +92,7 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
 
             def geometric(found):
                 return refine_match(found, points, reference_map).fitness
-        verdict = verifier.verify(match, planar(scan.pose) if odometry_known else None,
-                                  geometric, key=len(outcomes))
+        verdict = verifier.verify(match, odometry, geometric, key=len(outcomes))
         for earlier in verdict.confirms:
             outcomes[earlier].verdict = confirmed_later(outcomes[earlier].verdict)
         if icp and np.isnan(verdict.fitness) and geometric is not None:
