@@ -29,7 +29,7 @@ import threading
 import zlib
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -318,23 +318,30 @@ class ReferenceMap:
     def load(cls, path: str | Path, *, verify: bool = True) -> "ReferenceMap":
         """Load and validate a map; raises MapFileError naming the problem."""
         path = Path(path)
-        header_bytes, header_crc, size = _read_header(path)
-        if zlib.crc32(header_bytes) != header_crc:
-            raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
         try:
-            header = parse_header(header_bytes, _PREAMBLE.size + len(header_bytes), size)
-            loaded = _map_arrays(path, header.arrays, verify)
-            if "cloud_offsets" in loaded:
-                check_cloud_offsets(loaded["cloud_offsets"], len(loaded["cloud_points"]))
-            site_cloud = None
-            if header.site_cloud is not None:
-                site_cloud = SiteCloud(loaded["site_points"], loaded["site_tile_keys"],
-                                       loaded["site_tile_offsets"], *header.site_cloud)
-                problem = site_cloud.check()
-                if problem is not None:
-                    raise MapFileError(f"invalid map: {problem}")
-        except MapFileError as error:
-            raise MapFileError(f"{path}: {error}") from None
+            handle = open(path, "rb")
+        except OSError as error:
+            raise MapFileError(f"cannot read map file {path}: {error}") from error
+        # The header and every array from one open file: a save renames a new map over the
+        # path, and a map saved between two opens would mix two files' parts.
+        with handle:
+            header_bytes, header_crc, size = _read_header(handle, path)
+            if zlib.crc32(header_bytes) != header_crc:
+                raise MapFileError(f"{path}: corrupt map header (checksum mismatch)")
+            try:
+                header = parse_header(header_bytes, _PREAMBLE.size + len(header_bytes), size)
+                loaded = _map_arrays(handle, header.arrays, verify)
+                if "cloud_offsets" in loaded:
+                    check_cloud_offsets(loaded["cloud_offsets"], len(loaded["cloud_points"]))
+                site_cloud = None
+                if header.site_cloud is not None:
+                    site_cloud = SiteCloud(loaded["site_points"], loaded["site_tile_keys"],
+                                           loaded["site_tile_offsets"], *header.site_cloud)
+                    problem = site_cloud.check()
+                    if problem is not None:
+                        raise MapFileError(f"invalid map: {problem}")
+            except MapFileError as error:
+                raise MapFileError(f"{path}: {error}") from None
         reference_map = cls(header.params, frame_id=header.frame_id,
                             sensor_frame_id=header.sensor_frame_id, metadata=header.metadata)
         reference_map.source_path = path
@@ -351,27 +358,27 @@ class ReferenceMap:
         return reference_map
 
 
-def _read_header(path: Path) -> tuple[bytes, int, int]:
-    """The header bytes, their stored CRC and the file size, after the preamble's checks."""
+def _read_header(handle: BinaryIO, path: Path) -> tuple[bytes, int, int]:
+    """The header bytes, their stored CRC and the file size of the open map file at path,
+    after the preamble's checks."""
     try:
-        size = path.stat().st_size
-        with open(path, "rb") as handle:
-            preamble = handle.read(_PREAMBLE.size)
-            if len(preamble) < _PREAMBLE.size:
-                raise MapFileError(f"{path}: truncated map file ({size} bytes, no header)")
-            magic, version, header_len, header_crc = _PREAMBLE.unpack(preamble)
-            if magic != MAGIC:
-                raise MapFileError(f"{path}: not an mf_lpr_ros map (bad magic {magic!r})")
-            if version > FORMAT_VERSION:
-                raise MapFileError(
-                    f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
-                    f"this build reads versions 1 to {FORMAT_VERSION}")
-            if version < 1:
-                raise MapFileError(f"{path}: unsupported map format version {version}")
-            if header_len > MAX_HEADER_BYTES:
-                raise MapFileError(f"{path}: invalid map header length {header_len} (a header "
-                                   f"holds at most {MAX_HEADER_BYTES} bytes)")
-            header_bytes = handle.read(header_len)
+        size = os.fstat(handle.fileno()).st_size
+        preamble = handle.read(_PREAMBLE.size)
+        if len(preamble) < _PREAMBLE.size:
+            raise MapFileError(f"{path}: truncated map file ({size} bytes, no header)")
+        magic, version, header_len, header_crc = _PREAMBLE.unpack(preamble)
+        if magic != MAGIC:
+            raise MapFileError(f"{path}: not an mf_lpr_ros map (bad magic {magic!r})")
+        if version > FORMAT_VERSION:
+            raise MapFileError(
+                f"{path}: map format version {version} was written by a newer mf_lpr_ros; "
+                f"this build reads versions 1 to {FORMAT_VERSION}")
+        if version < 1:
+            raise MapFileError(f"{path}: unsupported map format version {version}")
+        if header_len > MAX_HEADER_BYTES:
+            raise MapFileError(f"{path}: invalid map header length {header_len} (a header "
+                               f"holds at most {MAX_HEADER_BYTES} bytes)")
+        header_bytes = handle.read(header_len)
     except OSError as error:
         raise MapFileError(f"cannot read map file {path}: {error}") from error
     if len(header_bytes) < header_len:
@@ -379,15 +386,16 @@ def _read_header(path: Path) -> tuple[bytes, int, int]:
     return header_bytes, header_crc, size
 
 
-def _map_arrays(path: Path, table: dict[str, ArrayEntry], verify: bool
+def _map_arrays(handle: BinaryIO, table: dict[str, ArrayEntry], verify: bool
                 ) -> dict[str, np.ndarray]:
-    """Every array of the checked header's table, memory-mapped and (verify) checksummed."""
+    """Every array of the checked header's table, memory-mapped from the open map file (the
+    mappings outlive the handle) and (verify) checksummed."""
     loaded: dict[str, np.ndarray] = {}
     for name, entry in table.items():
         if entry.nbytes == 0:
             array = np.zeros(entry.shape, dtype=entry.dtype)
         else:
-            array = np.memmap(path, dtype=entry.dtype, mode="r", offset=entry.offset,
+            array = np.memmap(handle, dtype=entry.dtype, mode="r", offset=entry.offset,
                               shape=entry.shape)
         if verify and array_crc32(array) != entry.crc32:
             raise MapFileError(f"corrupt map file (checksum mismatch in {name!r})")

@@ -17,6 +17,7 @@ is rebuilt. It is written atomically, like the map.
 from __future__ import annotations
 
 import json
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -43,7 +44,15 @@ def load_features(path: Path, content_key: str, shape: tuple[int, int, int]
     """The cached features (memory-mapped, checked) of the map with content_key, expected
     (harmonics, n, radii), and why not when they cannot be used: (None, reason)."""
     try:
-        with open(path, "rb") as handle:
+        handle = open(path, "rb")
+    except FileNotFoundError:
+        return None, f"no cache at {path}"
+    except OSError as error:
+        return None, f"cannot read {path}: {error}"
+    # The header and the features from one open file: another process may write the cache
+    # again meanwhile (ReferenceMap.load reads a map so too).
+    with handle:
+        try:
             preamble = handle.read(_PREAMBLE.size)
             if len(preamble) < _PREAMBLE.size:
                 return None, f"{path} is truncated"
@@ -51,30 +60,28 @@ def load_features(path: Path, content_key: str, shape: tuple[int, int, int]
             if magic != _MAGIC or header_length > _MAX_HEADER_BYTES:
                 return None, f"{path} is not a prefilter cache"
             header_bytes = handle.read(header_length)
-    except FileNotFoundError:
-        return None, f"no cache at {path}"
-    except OSError as error:
-        return None, f"cannot read {path}: {error}"
-    if zlib.crc32(header_bytes) != header_crc:
-        return None, f"{path} has a corrupt header"
-    try:
-        header = json.loads(header_bytes)
-        offset = int(header["offset"])
-    except (ValueError, KeyError, TypeError):
-        return None, f"{path} has an unreadable header"
-    if header.get("features_version") != FEATURES_VERSION:
-        return None, f"{path} holds features of another version"
-    if header.get("content_key") != content_key:
-        return None, f"prefilter cache {path} belongs to another version of the map"
-    if tuple(header.get("shape", ())) != shape or header.get("dtype") != "<c8":
-        return None, f"{path} holds features of another shape ({header.get('shape')})"
-    if path.stat().st_size < offset + int(np.prod(shape)) * 8:
-        return None, f"{path} is truncated"
-    features = np.memmap(path, dtype="<c8", mode="r", offset=offset, shape=shape)
+            size = os.fstat(handle.fileno()).st_size
+        except OSError as error:
+            return None, f"cannot read {path}: {error}"
+        if zlib.crc32(header_bytes) != header_crc:
+            return None, f"{path} has a corrupt header"
+        try:
+            header = json.loads(header_bytes)
+            offset = int(header["offset"])
+        except (ValueError, KeyError, TypeError):
+            return None, f"{path} has an unreadable header"
+        if header.get("features_version") != FEATURES_VERSION:
+            return None, f"{path} holds features of another version"
+        if header.get("content_key") != content_key:
+            return None, f"prefilter cache {path} belongs to another version of the map"
+        if tuple(header.get("shape", ())) != shape or header.get("dtype") != "<c8":
+            return None, f"{path} holds features of another shape ({header.get('shape')})"
+        if size < offset + int(np.prod(shape)) * 8:
+            return None, f"{path} is truncated"
+        features = np.memmap(handle, dtype="<c8", mode="r", offset=offset, shape=shape)
     if array_crc32(features) != header.get("crc32"):
         return None, f"{path} is corrupt (checksum mismatch)"
     return features, f"loaded from {path}"
-
 
 def save_features(path: Path, content_key: str, features: np.ndarray) -> str:
     """Write the cache atomically; returns what happened (a read-only directory is not an

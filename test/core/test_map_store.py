@@ -170,3 +170,25 @@ def test_saves_while_another_thread_appends_are_whole_maps(tmp_path, rng):
     reference_map.save(final)
     assert len(ReferenceMap.load(final)) == 400
     assert any(0 < length < 400 for length in saved_lengths), saved_lengths
+
+
+def test_a_map_saved_over_the_one_being_loaded_does_not_mix_into_it(tmp_path, rng,
+                                                                    monkeypatch):
+    """A localiser loading the map a map builder is saving every few seconds: the save renames a
+    new file over the path between the load's reading of the header and of the arrays. The
+    load reads the file it opened, whole."""
+    import mf_lpr_ros.core.map_store as map_store
+
+    path = tmp_path / "m.mfmap"
+    make_map(rng, 5).save(path)
+    newer = make_map(rng, 8)
+    parse_header = map_store.parse_header
+
+    def saved_over_meanwhile(*args):
+        newer.save(path)
+        return parse_header(*args)
+
+    monkeypatch.setattr(map_store, "parse_header", saved_over_meanwhile)
+    assert len(ReferenceMap.load(path)) == 5
+    monkeypatch.undo()
+    assert len(ReferenceMap.load(path)) == 8
