@@ -207,13 +207,9 @@ def single_scan_warning_for_sequence(config: Config, sequence) -> str | None:
     samples hold no finite point: the build itself says what is wrong with such scans)."""
     if config.auto or config.descriptor.submap_m > 0:
         return None
-    scans = [scan for scan in sequence.iter_scans(sample_indices(len(sequence)))
-             if not scan.problem]
-    if not scans or any(scan.points is None for scan in scans):
-        return None
-    clouds, orientations = profile_sequence_scans(scans)
     try:
-        profile = measure_sensor(clouds, orientations)
+        profile = measure_sensor(*profile_sequence_scans(
+            sequence.iter_scans(sample_indices(len(sequence)))))
     except InvalidCloudError:
         return None
     return single_scan_warning(profile, config.descriptor)

@@ -19,9 +19,10 @@ A match is published when, in this order (cheap tests first, each only on what p
    agreeing with the odometry between them.
 
 Agreement is symmetric: a candidate that lacked support when it came is confirmed as soon as
-enough later candidates agree with it (Verdict.confirms names it to the caller, who publishes
-it then: a pose graph takes a closure late as well as on time). So the first matches of a
-revisit are published too, on the same evidence as the ones after them.
+enough later candidates agree with it (Verdict.confirms names it to the caller, with the
+reason it is published for, and the caller publishes it then: a pose graph takes a closure
+late as well as on time). So the first matches of a revisit are published too, on the same
+evidence as the ones after them.
 
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
 fail distinctiveness alone, or odometry consistency alone (a candidate that found too few
@@ -59,7 +60,7 @@ class Verdict:
     reason: str
     fitness: float = math.nan
     support: int = -1
-    confirms: list[Any] = field(default_factory=list)
+    confirms: dict[Any, str] = field(default_factory=dict)
     awaiting_vouch: bool = False
 
     @property
@@ -78,17 +79,9 @@ VOUCHED = "accepted: a confirmed closure vouches for it"
 AWAITING_VOUCH = "no confirmed closure vouches for it yet"
 
 
-def confirmed_later(verdict: Verdict) -> Verdict:
-    """An earlier candidate's verdict once later candidates confirmed it (or, for one that
-    awaited a vouch, a later confirmed closure vouched for it)."""
-    return Verdict(True, reason_when_confirmed(verdict.reason), verdict.fitness,
-                   verdict.support)
-
-
-def reason_when_confirmed(reason: str) -> str:
-    """What a match that was not published, for this reason, is published for when a later
-    verdict's confirms name it."""
-    return VOUCHED if reason.endswith(AWAITING_VOUCH) else CONFIRMED_LATER
+def published_late(verdict: Verdict, reason: str) -> Verdict:
+    """An earlier match's verdict once a later verdict's confirms name it, with reason."""
+    return Verdict(True, reason, verdict.fitness, verdict.support)
 
 
 # Matches kept per list (candidates, matches awaiting a vouch), newest first: the travel window
@@ -173,11 +166,11 @@ class OdometryConsistency:
             & (yaw_gap_deg <= self.search.consistency_tolerance_deg)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
-                ) -> tuple[int, list[Any], bool]:
-        """(earlier candidates agreeing with this one, keys of the earlier matches that this
-        agreement confirms or, once a candidate is confirmed, that it vouches for, whether a
-        confirmed candidate vouches for this one that lacks support); the current one is then
-        remembered as a candidate."""
+                ) -> tuple[int, dict[Any, str], bool]:
+        """(earlier candidates agreeing with this one, the earlier matches that this
+        agreement confirms or, once a candidate is confirmed, that it vouches for (key ->
+        CONFIRMED_LATER or VOUCHED), whether a confirmed candidate vouches for this one that
+        lacks support); the current one is then remembered as a candidate."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
@@ -200,14 +193,15 @@ class OdometryConsistency:
         self._candidates.append(current)
         if current.confirmed:
             newly_confirmed.append(current)
-        confirmed = [c.key for c in newly_confirmed if c is not current and not c.published]
+        confirmed = {c.key: CONFIRMED_LATER for c in newly_confirmed
+                     if c is not current and not c.published}
         for anchor in newly_confirmed:
             anchor.published = True
             bisect.insort(self._anchors, anchor, key=lambda kept: kept.travelled_m)
         vouched = False
         if self.search.consistency_vouch:
             for anchor in newly_confirmed:
-                confirmed.extend(self._vouch_from(anchor))
+                confirmed.update(dict.fromkeys(self._vouch_from(anchor), VOUCHED))
             if not current.published:
                 # A closure confirmed without this candidate vouches for it, as for a match
                 # that fails distinctiveness alone; else it waits for one, as they do.
@@ -288,8 +282,9 @@ class MatchVerifier:
                key: Any = None) -> Verdict:
         """The verdict on one query's match (None: nothing to match against). fitness_of runs
         the geometric verification (ICP) and is called only when the cheap tests pass. key
-        names this query to later verdicts: Verdict.confirms lists the keys of earlier
-        matches that this match's agreement confirms or vouches for (publish them now)."""
+        names this query to later verdicts: Verdict.confirms maps the keys of earlier
+        matches that this match's agreement confirms or vouches for to the reason they are
+        published for (publish them now)."""
         if self.consistency_active:
             if odometry is None:
                 raise ValueError("odometry consistency is on (search.consistency_min_support > "

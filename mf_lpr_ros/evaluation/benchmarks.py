@@ -196,11 +196,9 @@ SUITES: dict[str, Suite] = {suite.name: suite for suite in (
                    label="validation")) + _BEVPLACE_SPARSE_DATABASE,
           _BEVPLACE_TUNING[1]),
     Suite("sensors",
-          "The presets auto, default, livox and handheld on simulated sensors and mounts the "
-          "tuning suite does not hold (sim.simulator.SENSOR_WORLDS: a VLP-16, a Mid-360 and a "
-          "handheld HDL-32, Mid-360 and 64-beam sensor in the forest; an HDL-32, a 70-degree "
-          "Avia on a robot and in the hand, a VLP-16 0.4 m up, a Mid-360 on a roof, a handheld "
-          "VLP-16 and a car's OS1-64 in a town), day 2 off the grid against day 1, 5 m: a "
+          f"The presets {', '.join(_SENSOR_PRESETS)} on simulated sensors and mounts the "
+          f"tuning suite does not hold (sim.simulator.SENSOR_WORLDS: "
+          f"{', '.join(SENSOR_WORLDS)}), day 2 off the grid against day 1, 5 m: a "
           "check after a default changes (no preset may publish a false closure; auto should "
           "do what default does or better), not a set to choose defaults on",
           tuple(Rule("simulated", name, Protocol(5.0), tuple(SENSOR_WORLDS), by_preset=True)

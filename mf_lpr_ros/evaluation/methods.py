@@ -35,7 +35,8 @@ class Retrieval:
     """A method's answer for one query: the reference (position in the reference list, -1 for
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
-    (their order among this method's queries) it would now publish, confirmed late;
+    (their order among this method's queries) it would now publish, confirmed late, and the
+    reason it publishes each for;
     distinctiveness, place_similarity and reason: see QueryRecord; searched: the references
     its candidate stage kept for the full comparison (None: the method does not say)."""
 
@@ -46,7 +47,7 @@ class Retrieval:
     ms_global: float
     ms_local: float = 0.0
     published: bool = False
-    confirms: list[int] = field(default_factory=list)
+    confirms: dict[int, str] = field(default_factory=dict)
     distinctiveness: float = math.nan
     local_distinctiveness: float = math.nan
     reason: str = ""

@@ -26,7 +26,6 @@ from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import map_metadata, resolve_for_sequence
 from mf_lpr_ros.core.pose import planar, planar_error
 from mf_lpr_ros.core.references import select_references
-from mf_lpr_ros.core.verification import reason_when_confirmed
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.errors import InvalidCloudError
@@ -258,10 +257,10 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             searched_nearest_m=_nearest_of(
                 distances, None if retrieval.searched is None else in_map[retrieval.searched]),
             place_similarity=float(retrieval.place_similarity)))
-        for earlier in retrieval.confirms:
+        for earlier, reason in retrieval.confirms.items():
             confirmed = records[searched_records[earlier]]
             confirmed.published = True
-            confirmed.reason = reason_when_confirmed(confirmed.reason)
+            confirmed.reason = reason
     return ProtocolRun(records, selection.references[~described].tolist())
 
 

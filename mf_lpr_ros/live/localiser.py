@@ -17,7 +17,7 @@ from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
-from mf_lpr_ros.core.verification import MATCHES_KEPT, MatchVerifier, reason_when_confirmed
+from mf_lpr_ros.core.verification import MATCHES_KEPT, MatchVerifier
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
@@ -183,13 +183,13 @@ class Localiser:
                 self._unconfirmed.popitem(last=False)
         return result
 
-    def _confirmed(self, stamps: list[float]) -> list[LiveMatch]:
-        """The earlier candidates these stamps name, now accepted."""
+    def _confirmed(self, reasons: dict[float, str]) -> list[LiveMatch]:
+        """The earlier candidates these stamps name, now accepted for the reason given."""
         confirmed = []
-        for stamp in stamps:
+        for stamp, reason in reasons.items():
             earlier = self._unconfirmed.pop(stamp, None)
             if earlier is not None:
-                earlier.accepted, earlier.reason = True, reason_when_confirmed(earlier.reason)
+                earlier.accepted, earlier.reason = True, reason
                 confirmed.append(earlier)
         return confirmed
 

@@ -14,7 +14,7 @@ from mf_lpr_ros.core.pose import planar, planar_error
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import SubmapWindow
-from mf_lpr_ros.core.verification import MatchVerifier, Verdict, confirmed_later
+from mf_lpr_ros.core.verification import MatchVerifier, Verdict, published_late
 from mf_lpr_ros.datasets import Sequence
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.params import SearchParams
@@ -93,8 +93,8 @@ def localise_sequence(reference_map: ReferenceMap, sequence: Sequence, search: S
             def geometric(found):
                 return refine_match(found, points, reference_map).fitness
         verdict = verifier.verify(match, odometry, geometric, key=len(outcomes))
-        for earlier in verdict.confirms:
-            outcomes[earlier].verdict = confirmed_later(outcomes[earlier].verdict)
+        for earlier, reason in verdict.confirms.items():
+            outcomes[earlier].verdict = published_late(outcomes[earlier].verdict, reason)
         if icp and np.isnan(verdict.fitness) and geometric is not None:
             geometric(match)
         outcomes.append(QueryOutcome(scan.index, scan.stamp, match, descriptor_ms, verdict, truth))

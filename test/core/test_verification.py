@@ -17,7 +17,6 @@ from mf_lpr_ros.core.verification import (
     MATCHES_KEPT,
     VOUCHED,
     MatchVerifier,
-    confirmed_later,
 )
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import DescriptorParams, SearchParams
@@ -189,8 +188,8 @@ def test_later_agreement_confirms_the_first_matches_of_a_revisit_but_not_a_one_o
     # The revisit's first true matches (1, 2) lack support when they come (none, then one);
     # the third (4) agrees with both and confirms them, once. The false ones (0, 6) agree with
     # nothing and are never confirmed.
-    assert confirms[4] == ["scan 1", "scan 2"]
-    assert all(keys == [] for index, keys in enumerate(confirms) if index != 4)
+    assert confirms[4] == {"scan 1": CONFIRMED_LATER, "scan 2": CONFIRMED_LATER}
+    assert all(not keys for index, keys in enumerate(confirms) if index != 4)
 
 
 def test_a_run_of_two_confirms_neither():
@@ -199,7 +198,7 @@ def test_a_run_of_two_confirms_neither():
     verdicts = [verifier.verify(_match(pose + [10.0, 0.0, 0.0]), pose, key=k)
                 for k, pose in enumerate(odometry)]
     assert verdicts[1].support == 1 and not verdicts[1].accepted
-    assert verdicts[0].confirms == [] and verdicts[1].confirms == []
+    assert not verdicts[0].confirms and not verdicts[1].confirms
 
 
 def test_a_stationary_robot_repeating_a_false_match_gets_no_support():
@@ -286,9 +285,8 @@ def test_a_confirmed_closure_vouches_for_agreeing_indistinct_matches_on_time_and
     # revisit's first candidates (3 confirms 0 and 2) vouches for it too.
     assert not verdicts[1].accepted and verdicts[1].may_be_confirmed
     assert verdicts[1].reason.endswith(AWAITING_VOUCH)
-    assert verdicts[3].accepted and sorted(verdicts[3].confirms) == [0, 1, 2]
-    assert confirmed_later(verdicts[1]).reason == VOUCHED
-    assert confirmed_later(verdicts[0]).reason == CONFIRMED_LATER
+    assert verdicts[3].accepted
+    assert verdicts[3].confirms == {0: CONFIRMED_LATER, 1: VOUCHED, 2: CONFIRMED_LATER}
     # 8 comes after: vouched for on time. It is no candidate and supports no one: 10's
     # support is 7's and 7 itself.
     assert verdicts[8].accepted and verdicts[8].reason == VOUCHED and not verdicts[8].candidate
@@ -411,7 +409,8 @@ def test_a_closure_vouches_for_an_unsupported_match_only_if_confirmed_without_it
     nor C. D, 4 steps later, lacks support but agrees with A, confirmed without it: vouched,
     and so is the match after it. The one after that is confirmed by those two; neither is
     published a second time, and the closure it makes, confirmed without B and C, vouches for
-    them (each within the tolerance of where it puts them)."""
+    them (each within the tolerance of where it puts them): they are published for the vouch,
+    not as confirmed."""
     # Support from the last 6 m only: A, B and C count for one another, not for D.
     verifier = MatchVerifier(SearchParams(consistency_min_support=2, consistency_window_m=6.0))
     odometry = _drive(10)
@@ -421,7 +420,7 @@ def test_a_closure_vouches_for_an_unsupported_match_only_if_confirmed_without_it
     for key, index, offset in (("A", 0, np.zeros(3)), ("B", 1, ahead), ("C", 2, behind)):
         verdicts[key] = verifier.verify(_match(truth[index] + offset), odometry[index], key=key)
     assert [verdicts[k].support for k in "ABC"] == [0, 1, 1]
-    assert verdicts["C"].confirms == ["A"] and not verdicts["C"].accepted
+    assert verdicts["C"].confirms == {"A": CONFIRMED_LATER} and not verdicts["C"].accepted
     assert verdicts["C"].may_be_confirmed
     for index in (3, 4, 5, 6):
         verifier.verify(None, odometry[index])
@@ -432,7 +431,7 @@ def test_a_closure_vouches_for_an_unsupported_match_only_if_confirmed_without_it
              for index in (8, 9)]
     assert later[0].support == 1 and later[0].reason == VOUCHED
     assert later[1].support == 2 and later[1].reason == "accepted"
-    assert later[1].confirms == ["B", "C"]
+    assert later[1].confirms == {"B": VOUCHED, "C": VOUCHED}
 
 
 def test_support_expires_after_the_travel_window():
