@@ -22,10 +22,9 @@ class SummaryLine:
 
     def __init__(self, iterable: Iterable, desc: str, unit: str) -> None:
         self.iterable, self.desc, self.unit = iterable, desc, unit
-        self.postfix = ""
 
     def set_postfix_str(self, text: str) -> None:
-        self.postfix = text
+        """Nothing is shown while it runs: the line comes at the end."""
 
     def __iter__(self) -> Iterator:
         started, count = time.monotonic(), 0

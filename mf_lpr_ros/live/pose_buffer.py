@@ -34,22 +34,16 @@ class PoseBuffer:
         self._stamps: deque[float] = deque()
         self._poses: deque[np.ndarray] = deque()
         self.jumps = 0
-        self.out_of_order = 0
         self._valid_from = -math.inf
 
     def __len__(self) -> int:
         return len(self._stamps)
-
-    @property
-    def newest_stamp(self) -> float | None:
-        return self._stamps[-1] if self._stamps else None
 
     def add(self, stamp: float, pose: np.ndarray) -> None:
         pose = validate_pose(pose)
         if not math.isfinite(stamp):
             raise InvalidPoseError(f"pose stamp {stamp} is not finite")
         if self._stamps and stamp <= self._stamps[-1]:
-            self.out_of_order += 1
             raise InvalidPoseError(f"pose stamp {stamp:.6f} is not after the previous one "
                                    f"({self._stamps[-1]:.6f}); sample ignored")
         if self._stamps:

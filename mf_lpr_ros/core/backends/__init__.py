@@ -14,8 +14,6 @@ from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 from mf_lpr_ros.core.workers import Workers
 from mf_lpr_ros.errors import ConfigError
 
-BACKENDS = ("auto", "numpy", "torch")
-
 
 @dataclass
 class SearchBackend:
