@@ -18,6 +18,7 @@ from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.auto_params import SINGLE_SCAN_WARNING_KEY
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.references import passed_over_summary
+from mf_lpr_ros.core.search import cache_prefilter
 from mf_lpr_ros.datasets import open_source
 
 
@@ -35,7 +36,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     sequence = open_source(args.source, args.cloud_topic, args.pose_topic)
     reference_map = build_map(sequence, config, keep_clouds=args.keep_clouds,
                               progress=not args.quiet)
-    reference_map.save(args.out)
+    _save(reference_map, args.out, config)
     if "auto" in reference_map.metadata:
         print(reference_map.metadata["auto"]["choice"])
     if SINGLE_SCAN_WARNING_KEY in reference_map.metadata:
@@ -60,14 +61,24 @@ def _build_maps(args: argparse.Namespace, config: Config) -> int:
         out_dir.mkdir(parents=True, exist_ok=True)
         for spec, reference_map in zip(specs, maps):
             path = out_dir / f"{Path(spec.path).name}.mfmap"
-            reference_map.save(path)
+            _save(reference_map, path, config)
             _warn_passed_over(reference_map)
             print(f"wrote {path}: {len(reference_map)} references")
     else:
-        maps[0].save(args.out)
+        _save(maps[0], args.out, config)
         _warn_passed_over(maps[0])
         print(f"wrote {args.out}: {len(maps[0])} references from {len(specs)} sources")
     return 0
+
+
+def _save(reference_map: ReferenceMap, path: str | Path, config: Config) -> None:
+    """Save the map, and beside it the prefilter's features when its search reads them from
+    the cache (a map above search.reference_spectra's threshold): the first localiser to
+    start on it then loads them as a restart does, instead of computing them."""
+    reference_map.save(path)
+    status = cache_prefilter(Path(path), config.search)
+    if status is not None:
+        print(f"prefilter features of {path}: {status}")
 
 
 def _warn_passed_over(reference_map: ReferenceMap) -> None:
@@ -91,7 +102,7 @@ def _build_global_map(args: argparse.Namespace, config: Config) -> int:
                                          workers=args.workers, client=client,
                                          tiles_folder=args.tiles_dir,
                                          keep_clouds=args.keep_clouds)
-    reference_map.save(args.out)
+    _save(reference_map, args.out, config)
     area = reference_map.metadata["grid_area_km2"]
     print(f"wrote {args.out}: {len(reference_map)} references rendered from {args.global_map} "
           f"on a {render.spacing_m} m grid over {area:.4f} km^2 (sensor "

@@ -7,6 +7,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -141,6 +142,27 @@ def passes_confidence(confidence: float, place_similarity: float, search: Search
         and confidence >= search.min_relative_confidence * place_similarity)
 
 
+def reads_spectra_on_demand(search: SearchParams, n_references: int) -> bool:
+    """Whether a search of a map of n_references computes each query's candidates' spectra
+    from the map instead of keeping every reference's (search.reference_spectra): then only
+    the prefilter's features stay in memory, cached beside a map file (cache_prefilter)."""
+    return search.reference_spectra == "on_demand" or (
+        search.reference_spectra == "auto" and search.prefilter_top_k > 0
+        and n_references > ON_DEMAND_ABOVE)
+
+
+def cache_prefilter(map_path: Path, search: SearchParams) -> str | None:
+    """The prefilter's features of the map saved at map_path, written beside it now as the
+    first search of it would write them, so that a localiser's first start on a map built
+    offline takes what a restart takes (a 1 km^2 grid: ~27 s to compute them, ~0.5 s to
+    read them). What was done (MatchedFilterIndex.prefilter_cache_status), or None for a map
+    whose search keeps its spectra in memory and caches nothing."""
+    reference_map = ReferenceMap.load(map_path)
+    if not reads_spectra_on_demand(search, len(reference_map)):
+        return None
+    return MatchedFilterIndex(reference_map, search).prefilter_cache_status
+
+
 class MatchedFilterIndex:
     """Searches a ReferenceMap; reference spectra are computed once, when references arrive."""
 
@@ -180,9 +202,7 @@ class MatchedFilterIndex:
             self.params.size, [self.global_angles] + [angle + self.local_offsets
                                                       for angle in self.global_angles])
         size = self.params.low_size
-        self.spectra_on_demand = search.reference_spectra == "on_demand" or (
-            search.reference_spectra == "auto" and search.prefilter_top_k > 0
-            and len(reference_map) > ON_DEMAND_ABOVE)
+        self.spectra_on_demand = reads_spectra_on_demand(search, len(reference_map))
         # On demand, the bank holds one query's candidates at a time.
         capacity = search.prefilter_top_k if self.spectra_on_demand else len(reference_map)
         backend = make_backend(search.backend, size, self.low_shift, max(capacity, 1),

@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.cli import main
+from mf_lpr_ros.config import load_config, preset
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.prefilter_cache import cache_path
+from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.sim.synthetic import route, write_kitti_sequence
 
 
@@ -25,6 +28,7 @@ def test_build_localise_evaluate_round_trip(traversals, tmp_path, capsys):
                  "--quiet"]) == 0
     reference_map = ReferenceMap.load(map_path)
     assert 25 <= len(reference_map) <= 60
+    assert not cache_path(map_path).exists()        # a small map: its spectra stay in memory
     steps = np.linalg.norm(np.diff(reference_map.planar_poses[:, :2], axis=0), axis=1)
     assert steps.min() >= 2.0
 
@@ -58,6 +62,22 @@ def test_build_localise_evaluate_round_trip(traversals, tmp_path, capsys):
     assert report["n_queries"] == 20 and report["recall_at_1_corrected"] >= 0.95
     assert main(["info", str(map_path)]) == 0
     assert '"references"' in capsys.readouterr().out
+
+
+def test_build_map_writes_the_prefilter_cache_a_large_map_starts_from(traversals, tmp_path,
+                                                                       capsys):
+    """A map whose search reads its spectra on demand (here forced: one above 50,000
+    references gets it by default) is saved with its prefilter's features beside it, so the
+    localiser's first start loads them."""
+    config = tmp_path / "on_demand.yaml"
+    config.write_text("search:\n  reference_spectra: on_demand\n")
+    map_path = tmp_path / "large.mfmap"
+    assert main(["build-map", str(traversals / "first"), "--out", str(map_path), "--preset",
+                 "kitti", "--config", str(config), "--quiet"]) == 0
+    assert f"prefilter features of {map_path}: no cache at" in capsys.readouterr().out
+    search = load_config(config, preset("kitti")).search
+    index = MatchedFilterIndex(ReferenceMap.load(map_path), search)
+    assert index.prefilter_cache_status.startswith("loaded from")
 
 
 def test_single_sequence_protocol_excludes_recent_frames(traversals, tmp_path):

@@ -9,7 +9,7 @@ from mf_lpr_ros.core import search as search_module
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.prefilter_cache import cache_path, save_features
-from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.core.search import MatchedFilterIndex, cache_prefilter
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import DescriptorParams, SearchParams
 from mf_lpr_ros.sim.synthetic import route, scan_world
@@ -136,6 +136,26 @@ def test_prefilter_cache_is_written_reused_and_rebuilt_when_stale(tmp_path, loop
 
     cache_path(path).write_bytes(b"this is not a cache, only some text")
     assert "not a prefilter cache" in results_and_status()[1]
+
+
+def test_a_map_saved_offline_has_its_cache_written_before_any_search(tmp_path, loop_map,
+                                                                     queries):
+    """cache_prefilter, as build-map runs it after saving: the first index of the map then
+    loads the features instead of computing them, and matches as one in memory does. A map
+    whose search keeps its spectra in memory (the defaults, at this size) gets no cache."""
+    path = tmp_path / "loop.mfmap"
+    loop_map.save(path)
+    on_demand = dataclasses.replace(SEARCH, reference_spectra="on_demand")
+    assert cache_prefilter(path, SEARCH) is None
+    assert not cache_path(path).exists()
+    status = cache_prefilter(path, on_demand)
+    assert status.startswith("no cache at") and "; cached at" in status
+    index = MatchedFilterIndex(ReferenceMap.load(path), on_demand)
+    assert index.prefilter_cache_status.startswith("loaded from")
+    in_memory = MatchedFilterIndex(loop_map, SEARCH)
+    for query in queries:
+        _same_result(index.query(query), in_memory.query(query))
+    assert cache_prefilter(path, on_demand).startswith("loaded from")
 
 
 def test_a_cache_of_another_feature_size_is_rebuilt(tmp_path, loop_map, queries):
