@@ -256,6 +256,10 @@ class MatchedFilterIndex:
         if start == stop:
             return 0
         restored = self._restore_prefilter() if start == 0 else 0
+        if start == 0 and self.prefilter is not None:
+            # The map's size is known once, at the first index; a growing map's references
+            # come one sync at a time, and the bank doubles for them.
+            self.prefilter.reserve(stop)
         first_blocks = range(start + restored, stop, block)
         for first in progress_bar(first_blocks, desc="index references", unit="block",
                                   enabled=len(first_blocks) > _INDEX_BLOCKS_WITHOUT_PROGRESS):
