@@ -83,6 +83,7 @@ def load_features(path: Path, content_key: str, shape: tuple[int, int, int]
         return None, f"{path} is corrupt (checksum mismatch)"
     return features, f"loaded from {path}"
 
+
 def save_features(path: Path, content_key: str, features: np.ndarray) -> str:
     """Write the cache atomically; returns what happened (a read-only directory is not an
     error: the next start computes the features again)."""

@@ -157,7 +157,9 @@ def cache_prefilter(map_path: Path, search: SearchParams) -> str | None:
     offline takes what a restart takes (a 1 km^2 grid: ~27 s to compute them, ~0.5 s to
     read them). What was done (MatchedFilterIndex.prefilter_cache_status), or None for a map
     whose search keeps its spectra in memory and caches nothing."""
-    reference_map = ReferenceMap.load(map_path)
+    # Just written by the caller: its checksums (a whole read of the file) are checked by
+    # every start that loads it, not here.
+    reference_map = ReferenceMap.load(map_path, verify=False)
     if not reads_spectra_on_demand(search, len(reference_map)):
         return None
     return MatchedFilterIndex(reference_map, search).prefilter_cache_status
