@@ -213,11 +213,11 @@ class SearchParams:
     reference_spectra: where the global stage's reference spectra live. "memory": every
         reference's, computed when the index is built (~17 KB a reference at the defaults).
         "on_demand": only the prefilter's features are kept (~2.7 KB a reference, cached beside
-        the map file by build-map or else by the first start, so a large map starts in
-        seconds), and the candidates'
-        spectra are computed from the map's stored occupancy for each query (~5 ms for 100
-        candidates); needs prefilter_top_k > 0. Both give the same matches. "auto" (default):
-        memory up to 50,000 references when the index is made, on demand above.
+        the map file by build-map or the map builder node, or else by the first start, so a
+        large map starts in seconds), and the candidates' spectra are computed from the map's
+        stored occupancy for each query (~5 ms for 100 candidates); needs prefilter_top_k > 0.
+        Both give the same matches. "auto" (default): memory up to 50,000 references when the
+        index is made, on demand above.
     backend: where the search's array work runs. "numpy" (CPU); "torch" (PyTorch: the CUDA
         GPU when there is one, else torch's CPU build; same matches); "auto" picks torch when
         PyTorch is installed and sees a CUDA device, else numpy.

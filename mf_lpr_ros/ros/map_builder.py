@@ -5,7 +5,9 @@
 
 Subscribes `points` (PointCloud2) and `odom` (Odometry) or `pose` (PoseStamped /
 PoseWithCovarianceStamped); pairs each scan with the pose interpolated at its stamp; keeps one
-every spacing_m metres; saves the map atomically every save_period_s and at shutdown.
+every spacing_m metres; saves the map atomically every save_period_s and at shutdown. A map
+done (the last save, or a rendered grid) whose search reads its spectra on demand gets its
+prefilter cache beside it, as build-map writes it.
 
 With global_map_topic set (e.g. `map`, as map servers and LIO stacks publish their cloud:
 reliable, transient local), it instead waits for one global point-cloud map on that topic and
@@ -23,10 +25,12 @@ from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.search import cache_prefilter, reads_spectra_on_demand
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapFileError, ParameterFault
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.node_settings import POSE_SOURCES, MapBuilderSettings
 from mf_lpr_ros.live.pose_buffer import PoseBuffer, ScanPoseSynchroniser
+from mf_lpr_ros.params import SearchParams
 from mf_lpr_ros.ros.lidar_node import LidarNode, run_node
 from mf_lpr_ros.ros.qos import latched_qos, sensor_qos
 
@@ -130,10 +134,26 @@ class MapBuilderNode(LidarNode):
             self.counters["global_maps_rejected"] += 1
             self.get_logger().error(f"global map not rendered: {error}")
             return
-        self.global_maps_built += 1
         self.get_logger().info(
             f"rendered {len(reference_map)} references from a {len(points)}-point global map "
             f"to {self._global_path}")
+        self._cache_prefilter(self._global_path, self._global_config.search, len(reference_map))
+        self.global_maps_built += 1
+
+    def _cache_prefilter(self, path: Path, search: SearchParams, n_references: int) -> None:
+        """The prefilter's features written beside a map whose search reads its spectra on
+        demand, as build-map writes them: the localiser's first start then loads them
+        instead of computing them (a 1 km^2 grid: ~27 s). Only when the map is done (a
+        periodic save would compute them again every save_period_s)."""
+        if not reads_spectra_on_demand(search, n_references):
+            return
+        try:
+            status = cache_prefilter(path, search)
+        except (OSError, MapFileError) as error:
+            self.get_logger().error(f"prefilter features of {path} not cached ({error}); the "
+                                    "localiser's first start computes them")
+            return
+        self.get_logger().info(f"prefilter features of {path}: {status}")
 
     def _on_scan(self, message: PointCloud2) -> None:
         decoded = self.decode_scan(message)
@@ -219,6 +239,9 @@ class MapBuilderNode(LidarNode):
             self._report_auto()
         if self.builder.needs_save or not self.builder.map_path.exists():
             self.save()
+        if not self.builder.needs_save and self.builder.map_path.exists():
+            self._cache_prefilter(self.builder.map_path, self.builder.config.search,
+                                  len(self.builder.map))
         dropped = self.synchroniser.dropped_without_pose
         self.get_logger().info(
             f"map_builder done: {self.counters['scans_received']} scans, "

@@ -19,7 +19,9 @@ from sensor_msgs.msg import PointCloud2
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
+from mf_lpr_ros.core.prefilter_cache import cache_path
 from mf_lpr_ros.core.references import PASSED_OVER_KEY
+from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.ros.map_builder import MapBuilderNode
 from mf_lpr_ros.ros.messages import odometry_message, points_to_pointcloud2, seconds_to_stamp
 from mf_lpr_ros.sim.synthetic import scan_world
@@ -129,11 +131,36 @@ def test_map_builder_node_with_preset_auto_derives_then_builds(ros_graph, world,
     assert ros_graph.wait_for(lambda: len(builder.builder.map) == n_scans)
     builder.finish()
     saved = ReferenceMap.load(map_path)
-    assert len(saved) == n_scans
+    assert len(saved) == n_scans and not cache_path(map_path).exists()
     assert saved.metadata["auto"]["sensor_profile"]["ground_below_sensor_m"] > 1.5
     # A dense 360-degree sensor: the default voxel and band, its levelling decided (upright).
     assert "as given (a dense 360-degree sensor)" in saved.metadata["auto"]["choice"]
     assert saved.params == dataclasses.replace(preset("default").descriptor, level=False)
+
+
+def test_a_finished_map_whose_search_reads_spectra_on_demand_has_its_cache_beside_it(
+        ros_graph, world, tmp_path):
+    """As build-map does: the node's last save of a map searched with its spectra on demand
+    (forced here; over 50,000 references by default) writes the prefilter's features beside
+    it, and a localiser's first index loads them. Periodic saves write none: a map still
+    growing would compute them again at every save."""
+    map_path = tmp_path / "large.mfmap"
+    builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(map_path),
+                              **{"search.reference_spectra": "on_demand"})
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(3)
+    for index in range(4):
+        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry.publish(odometry_message(seconds_to_stamp(14.0), "map", "velodyne", np.eye(4)))
+    assert ros_graph.wait_for(lambda: len(builder.builder.map) == 4)
+    assert builder.save() and not cache_path(map_path).exists()
+    builder.finish()
+    search = builder.builder.config.search
+    index = MatchedFilterIndex(ReferenceMap.load(map_path), search)
+    assert index.prefilter_cache_status.startswith("loaded from")
 
 
 def test_scans_the_node_could_not_use_are_listed_in_the_map(ros_graph, world, tmp_path):
