@@ -309,8 +309,9 @@ class SearchParams:
         poses' yaws say how each reference's view is turned. "unknown": they do not (views
         turned by unknown angles, as in BEVPlace's rotated KITTI copies, or references
         tagged with a position alone): the nearest-place re-ranking then reports the finalist
-        the query is nearest to by its own alignment, when the two alignments put the
-        references as far apart as the map does (within rerank_agreement_m), and a place's
+        or map neighbour of the match the query is nearest to by its own alignment, when the
+        two alignments put the references as far apart as the map does (within
+        rerank_agreement_m; a neighbour scoring as well as the last finalist), and a place's
         similarity is measured at its views' own angles only. Poses against such a map carry
         the references' unknown turns: the evaluation scores retrieval only there, and the
         localiser node, which publishes poses, refuses it.

@@ -50,6 +50,9 @@ _REPORTED_CANDIDATES = 5
 # references 2 m apart one place's views fill the first ~8 (KITTI 00).
 _RANKED_FOR_ANOTHER_PLACE = 12
 _EXPANDED_LEADERS = 16
+# Map neighbours the candidate stage left out that a nearer view is looked for among, where
+# the map's headings are unknown (_nearer_neighbours): along a route, one on each side.
+_UNSEARCHED_NEIGHBOURS = 2
 # search.reference_spectra "auto": spectra in memory up to this many references (~0.9 GB).
 ON_DEMAND_ABOVE = 50_000
 _INDEX_BLOCKS_WITHOUT_PROGRESS = 16
@@ -538,7 +541,9 @@ class MatchedFilterIndex:
         if self.search.rerank_margin <= 0:
             return None
         if self.search.map_headings == "unknown":
-            return self._nearest_by_distances(match, peaks, ranked)
+            return self._nearest_by_distances(match, peaks, self._nearer_neighbours(
+                occupancy, match, peaks, searched, columns, prepared, headings, volume, n_refs),
+                ranked)
         offsets = self.map.poses[:n_refs, :2, 3] - match.pose[:2]
         nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
         if nearest == peaks[0].reference:
@@ -555,17 +560,25 @@ class MatchedFilterIndex:
         return candidate
 
     def _nearest_by_distances(self, match: MatchResult, peaks: list["_LocalPeak"],
-                              ranked: np.ndarray) -> "_LocalPeak | None":
+                              neighbours: list["_LocalPeak"], ranked: np.ndarray
+                              ) -> "_LocalPeak | None":
         """_nearest_place where the map's headings are unknown (SearchParams.map_headings):
-        the finalist the query is nearest to by its own alignment, when it scores within
-        rerank_margin of the best and the two alignments put the two references as far apart
-        as their map positions are (within rerank_agreement_m). A position in the map frame
-        needs a reference's heading; a distance does not."""
+        of the other finalists and the matched reference's neighbours (_nearer_neighbours),
+        the one the query is nearest to by its own alignment, when the two alignments put the
+        two references as far apart as their map positions are (within rerank_agreement_m)
+        and it scores within rerank_margin of the best. A position in the map frame needs a
+        reference's heading; a distance does not. A neighbour must also score as well as the
+        last finalist: it was not ranked for its score, and a distance agrees with the map by
+        chance more often than a position does (an alignment slid along a street). Without
+        that, rotated KITTI 00 lost right matches to neighbours 10-14 m off whose alignments,
+        at 0.19-0.65 of the best score, put the query nearer (docs/RESULTS.md, session 41)."""
         floor = (1.0 - self.search.rerank_margin) * peaks[0].score
+        finalist_floor = max(floor, min(peak.score for peak in peaks))
         origin = self.map.poses[match.reference_index, :2, 3]
         nearest, chosen = float(np.hypot(*match.shift_m)), None
-        for peak in peaks[1:]:
-            if peak.score < floor:
+        for peak, least in ([(peak, floor) for peak in peaks[1:]]
+                            + [(peak, finalist_floor) for peak in neighbours]):
+            if peak.score < least:
                 continue
             other = self._result(peak, ranked)
             distance = float(np.hypot(*other.shift_m))
@@ -577,6 +590,50 @@ class MatchedFilterIndex:
             if abs(aligned_apart - apart) <= self.search.rerank_agreement_m:
                 nearest, chosen = distance, peak
         return chosen
+
+    def _nearer_neighbours(self, occupancy: np.ndarray, match: MatchResult,
+                           peaks: list["_LocalPeak"], searched: np.ndarray, columns: np.ndarray,
+                           prepared: PreparedQueries, headings: np.ndarray, volume,
+                           n_refs: int) -> list["_LocalPeak"]:
+        """Where the map's headings are unknown, the matched reference's map neighbours that
+        may be nearer the query than it, aligned by the local stage: those within twice the
+        query's distance from it (a reference nearer the query lies within that), and of
+        them the searched one the global stage puts nearest the query, and the
+        _UNSEARCHED_NEIGHBOURS nearest it that the candidate stage left out, each at its
+        prefilter angle and the opposite one. The finalists alone often hold no nearer view:
+        the best-scoring ones tend to be neighbours of each other a few metres past the
+        query, where the map's positions would have named the nearer one had its headings
+        been known (_nearest_place)."""
+        origin = self.map.poses[match.reference_index, :2, 3]
+        reach = 2.0 * float(np.hypot(*match.shift_m)) + self.search.rerank_agreement_m
+        near = np.asarray(self._reference_positions().query_ball_point(origin, reach),
+                          dtype=np.int64)
+        aligned = [peak.reference for peak in peaks]
+        near = near[(near < n_refs) & ~np.isin(near, aligned)]
+        if not len(near):
+            return []
+        jobs = []
+        positions = np.flatnonzero(np.isin(searched, near))
+        if len(positions):
+            located = (self.bank.peaks(volume, positions) if volume is not None
+                       else self.bank.locate(prepared, columns[positions]))
+            rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
+            distance = np.hypot(*self._shift_m(
+                located[:, [2, 1]] * (self.params.pool * self.params.voxel_size),
+                rotation).T)
+            nearest = int(np.argmin(distance))
+            jobs.append((int(searched[positions[nearest]]),
+                         float(self.global_angles[headings[int(located[nearest, 0])]])))
+        unsearched = near[~np.isin(near, searched)]
+        if len(unsearched) and self.prefilter is not None:
+            apart = np.hypot(*(self.map.poses[unsearched, :2, 3] - origin).T)
+            unsearched = unsearched[np.argsort(apart, kind="stable")[:_UNSEARCHED_NEIGHBOURS]]
+            upright = self._turned_and_pooled(occupancy, np.arange(1))[0]
+            allowed = self._allowed_headings(upright, unsearched,
+                                             window=self.search.rotation_step_deg / 2)
+            jobs += [(int(reference), float(angle)) for reference, row in zip(unsearched, allowed)
+                     for angle in self.global_angles[row]]
+        return self._local_peaks(occupancy, jobs) if jobs else []
 
     def _reported_at(self, match: MatchResult, reference: int, ranked: np.ndarray
                      ) -> MatchResult:

@@ -646,3 +646,33 @@ def test_maps_of_scans_keep_the_window_by_default(synthetic_map):
     assert MatchedFilterIndex(synthetic_map,
                               SearchParams(query_footprint="observed")).observed_queries
 
+
+
+@pytest.mark.parametrize("candidates", [
+    {},
+    # The candidate stage keeps the two best-ranked alone: the neighbours are not searched.
+    {"prefilter_top_k": 2, "prefilter_expand_m": 0.0},
+], ids=["searched", "left_out"])
+def test_a_map_of_unknown_headings_reports_the_nearest_view_among_the_matchs_neighbours(
+        candidates):
+    # The finalists are often neighbours of each other a few metres past the query; the
+    # nearest view is then a map neighbour of the match that no finalist is. Where the map's
+    # yaws are not its views', the match's neighbours within twice the query's distance are
+    # aligned too (the one the global stage puts nearest, and the two nearest left out of the
+    # candidates), and the nearest of them whose alignment agrees with the map's distances
+    # is reported.
+    street, xs = _street()
+    wrong = turned_view_map(street, [(view, turn, 0.0) for view, turn in
+                                     enumerate(_heading_errors(len(street)))])
+    off = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", rerank_margin=0.0,
+                                                 **candidates))
+    unknown = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", **candidates))
+    nearest = beside_finalists = 0
+    for x, points, _ in _queries_along_the_street():
+        query = describe_points(points, PARAMS)
+        best, reported = off.query(query), unknown.query(query)
+        gap_best, gap_reported = (abs(xs[match.reference_index] - x) for match in (best, reported))
+        assert gap_reported <= gap_best
+        nearest += gap_reported <= 1.01
+        beside_finalists += reported.reference_index not in best.candidates[:2]
+    assert nearest >= 23 and beside_finalists >= 3
