@@ -55,6 +55,11 @@ class Protocol:
     # pose cannot (it carries the reference image's unknown turn), so the summary's pose-based
     # figures are NaN (metrics.POSE_FIGURES), and the search runs with map_headings "unknown".
     headings_known: bool = True
+    # True where every query asks where one scan is on the map (BEVPlace's retrieval
+    # protocol): each is searched as `mf-lpr localise` and the `~/relocalise` service search a
+    # relocalisation request, a weak match searched again over the prefilter's wider list
+    # (SearchParams.prefilter_retry). False: as a loop-closure stream searches its scans.
+    requests: bool = False
 
     def __post_init__(self) -> None:
         if not self.tolerance_m > 0:
@@ -326,6 +331,8 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     headings_known = protocol.headings_known and config.search.map_headings == "known"
     if not headings_known:
         config = replace(config, search=replace(config.search, map_headings="unknown"))
+    if protocol.requests:
+        config = replace(config, search=replace(config.search, prefilter_retry="every_query"))
     runner = make_method(method, config)
     run = run_protocol(runner, reference, selection, query=query, progress=progress)
     summary = summarise(run.records, protocol.tolerance_m, len(selection.references),

@@ -135,6 +135,31 @@ def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(
         assert (told[-1], result.summary["poses_scored"]) == expected
 
 
+def test_a_protocol_of_requests_searches_each_query_as_a_relocalisation_request(monkeypatch):
+    # BEVPlace's protocol asks where each scan is: its [requests] pairs search as `localise`
+    # does, a weak match again over the prefilter's wider list; every other pair as a stream.
+    told = []
+
+    def method_of(name, config):
+        told.append(config.search.prefilter_retry)
+        return SimpleNamespace(name=name)
+
+    monkeypatch.setattr(protocol_module, "make_method", method_of)
+    monkeypatch.setattr(protocol_module, "run_protocol",
+                        lambda *args, **kwargs: protocol_module.ProtocolRun([], []))
+    for requests, expected in ((False, "requests"), (True, "every_query")):
+        evaluate_pair(Line(10), preset("kitti"), Protocol(3.0, exclude_recent_frames=2,
+                                                          requests=requests))
+        assert told[-1] == expected
+    labelled = {rule.references[0]: rule.label for rule in SUITES["kitti-bevplace"].rules
+                if rule.protocol.requests}
+    assert labelled == {f"{folder}/{sequence}{suffix}": "requests"
+                        for folder, sequences in (("kitti_bev", ("00",)),
+                                                  ("holdout/kitti_bev", ("02", "05", "06")))
+                        for sequence in sequences for suffix in ("", "_rot")}
+    assert not any(rule.protocol.requests for rule in SUITES["tuning"].rules)
+
+
 def test_only_the_rotated_copies_leave_their_poses_unscored():
     for suite in ("tuning", "kitti-bevplace"):
         for rule in SUITES[suite].rules:
