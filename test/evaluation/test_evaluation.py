@@ -110,18 +110,25 @@ def test_where_headings_are_unknown_retrieval_is_scored_and_poses_are_not():
     assert unscored["recall_at_1"] == 0.5 and unscored["closures_published"] == 1
 
 
-def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(monkeypatch):
-    # One fact, known to either side: a protocol's turned copies tell the search
-    # (SearchParams.map_headings), and a search told so leaves the poses unscored.
+def _search_told(monkeypatch, read) -> list:
+    """What evaluate_pair tells the search (read of its SearchParams), one entry a pair, the
+    run itself skipped."""
     told = []
 
     def method_of(name, config):
-        told.append(config.search.map_headings)
+        told.append(read(config.search))
         return SimpleNamespace(name=name)
 
     monkeypatch.setattr(protocol_module, "make_method", method_of)
     monkeypatch.setattr(protocol_module, "run_protocol",
                         lambda *args, **kwargs: protocol_module.ProtocolRun([], []))
+    return told
+
+
+def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(monkeypatch):
+    # One fact, known to either side: a protocol's turned copies tell the search
+    # (SearchParams.map_headings), and a search told so leaves the poses unscored.
+    told = _search_told(monkeypatch, lambda search: search.map_headings)
     monkeypatch.setattr(protocol_module, "summarise",
                         lambda records, tolerance_m, n_references, poses_scored:
                         {"poses_scored": poses_scored})
@@ -138,15 +145,7 @@ def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(
 def test_a_protocol_of_requests_searches_each_query_as_a_relocalisation_request(monkeypatch):
     # BEVPlace's protocol asks where each scan is: its [requests] pairs search as `localise`
     # does, a weak match again over the prefilter's wider list; every other pair as a stream.
-    told = []
-
-    def method_of(name, config):
-        told.append(config.search.prefilter_retry)
-        return SimpleNamespace(name=name)
-
-    monkeypatch.setattr(protocol_module, "make_method", method_of)
-    monkeypatch.setattr(protocol_module, "run_protocol",
-                        lambda *args, **kwargs: protocol_module.ProtocolRun([], []))
+    told = _search_told(monkeypatch, lambda search: search.prefilter_retry)
     for requests, expected in ((False, "requests"), (True, "every_query")):
         evaluate_pair(Line(10), preset("kitti"), Protocol(3.0, exclude_recent_frames=2,
                                                           requests=requests))

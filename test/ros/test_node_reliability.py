@@ -45,6 +45,19 @@ def _posed_scan_publishers(ros_graph):
     return clouds, odometry
 
 
+def _publish_scans_along_a_street(ros_graph, world, count: int):
+    """count scans of the world 3 m apart along x, each with its odometry, stamped 10 s on,
+    one a second; returns the odometry publisher."""
+    clouds, odometry = _posed_scan_publishers(ros_graph)
+    rng = np.random.default_rng(3)
+    for index in range(count):
+        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
+        stamp = seconds_to_stamp(10.0 + index)
+        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
+        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    return odometry
+
+
 def test_full_disk_is_reported_and_the_map_stays_in_memory(ros_graph, world, tmp_path):
     map_path = tmp_path / "full.mfmap"
     process = subprocess.Popen(
@@ -102,13 +115,7 @@ def test_bad_poses_are_refused_and_building_goes_on(ros_graph, world, tmp_path):
 def test_an_unwritable_map_path_is_reported_and_the_map_kept(ros_graph, world):
     builder = ros_graph.start(MapBuilderNode, preset="kitti",
                               map_path="/proc/mf_lpr_read_only/map.mfmap")
-    clouds, odometry = _posed_scan_publishers(ros_graph)
-    rng = np.random.default_rng(3)
-    for index in range(3):
-        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
-        stamp = seconds_to_stamp(10.0 + index)
-        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
-        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    _publish_scans_along_a_street(ros_graph, world, 3)
     assert ros_graph.wait_for(lambda: len(builder.builder.map) == 3)
     assert not builder.save()
     assert builder.counters["save_failures"] == 1 and builder.builder.unsaved == 3
@@ -147,13 +154,7 @@ def test_a_finished_map_whose_search_reads_spectra_on_demand_has_its_cache_besid
     map_path = tmp_path / "large.mfmap"
     builder = ros_graph.start(MapBuilderNode, preset="kitti", map_path=str(map_path),
                               **{"search.reference_spectra": "on_demand"})
-    clouds, odometry = _posed_scan_publishers(ros_graph)
-    rng = np.random.default_rng(3)
-    for index in range(4):
-        points, pose = scan_world(world, 3.0 * index, 0.0, 0.0, rng)
-        stamp = seconds_to_stamp(10.0 + index)
-        odometry.publish(odometry_message(stamp, "map", "velodyne", pose))
-        clouds.publish(points_to_pointcloud2(points, stamp, "velodyne"))
+    odometry = _publish_scans_along_a_street(ros_graph, world, 4)
     odometry.publish(odometry_message(seconds_to_stamp(14.0), "map", "velodyne", np.eye(4)))
     assert ros_graph.wait_for(lambda: len(builder.builder.map) == 4)
     assert builder.save() and not cache_path(map_path).exists()
