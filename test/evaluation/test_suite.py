@@ -4,6 +4,7 @@ import csv
 import functools
 import json
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -48,17 +49,21 @@ def test_kitti_bevplace_preset_uses_bevplaces_splits_and_published_figures(tmp_p
                    "holdout/kitti_bev/05_rot", "holdout/kitti_bev/06", "holdout/kitti_bev/06_rot"):
         (tmp_path / folder).mkdir(parents=True)
     pairs = {p.name: p for p in SUITES["kitti-bevplace"].pairs(tmp_path)}
-    assert sorted(pairs) == sorted(f"{root}_{s}{r}" for root, s in (
+    # Each pair searched as a loop-closure stream, and as relocalisation requests.
+    assert sorted(pairs) == sorted(f"{root}_{s}{r}{mode}" for root, s in (
         ("kitti_bev", "00"), ("holdout_kitti_bev", "02"), ("holdout_kitti_bev", "05"),
-        ("holdout_kitti_bev", "06")) for r in ("", "_rot"))
-    assert pairs["holdout_kitti_bev_02_rot"].protocol == Protocol(
-        5.0, reference_spacing_m=0.0, reference_frames=(0, 3399), query_frames=(3600, 4660),
-        headings_known=False)
+        ("holdout_kitti_bev", "06")) for r in ("", "_rot") for mode in ("", " [requests]"))
+    stream = Protocol(5.0, reference_spacing_m=0.0, reference_frames=(0, 3399),
+                      query_frames=(3600, 4660), headings_known=False)
+    assert pairs["holdout_kitti_bev_02_rot"].protocol == stream
+    assert pairs["holdout_kitti_bev_02_rot [requests]"].protocol == replace(stream,
+                                                                           requests=True)
     assert all(p.query is None and p.preset == "kitti" for p in pairs.values())
     published = {(f.pair, f.recall_at_1) for f in SUITES["kitti-bevplace"].published}
     assert ("holdout_kitti_bev_02_rot", 0.935) in published and len(published) == 8
     tuning = SUITES["kitti-bevplace-00"].pairs(tmp_path)
-    assert [p.name for p in tuning] == ["kitti_bev_00", "kitti_bev_00_rot"]
+    assert [p.name for p in tuning] == ["kitti_bev_00", "kitti_bev_00_rot",
+                                        "kitti_bev_00 [requests]", "kitti_bev_00_rot [requests]"]
 
 
 def test_wildplaces_inter_sequence_pairs_use_the_query_split(tmp_path):
