@@ -76,7 +76,7 @@ def _save(reference_map: ReferenceMap, path: str | Path, config: Config) -> None
     the cache (a map above search.reference_spectra's threshold): the first localiser to
     start on it then loads them as a restart does, instead of computing them."""
     reference_map.save(path)
-    status = cache_prefilter(Path(path), config.search)
+    status = cache_prefilter(Path(path), config.search, len(reference_map))
     if status is not None:
         print(f"prefilter features of {path}: {status}")
 

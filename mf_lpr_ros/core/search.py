@@ -154,12 +154,16 @@ def reads_spectra_on_demand(search: SearchParams, n_references: int) -> bool:
         and n_references > ON_DEMAND_ABOVE)
 
 
-def cache_prefilter(map_path: Path, search: SearchParams) -> str | None:
+def cache_prefilter(map_path: Path, search: SearchParams, n_references: int | None = None
+                    ) -> str | None:
     """The prefilter's features of the map saved at map_path, written beside it now as the
     first search of it would write them, so that a localiser's first start on a map built
     offline takes what a restart takes (a 1 km^2 grid: ~27 s to compute them, ~0.5 s to
     read them). What was done (MatchedFilterIndex.prefilter_cache_status), or None for a map
-    whose search keeps its spectra in memory and caches nothing."""
+    whose search keeps its spectra in memory and caches nothing. n_references, where the
+    caller knows it: such a map is not even opened."""
+    if n_references is not None and not reads_spectra_on_demand(search, n_references):
+        return None
     # Just written by the caller: its checksums (a whole read of the file) are checked by
     # every start that loads it, not here.
     reference_map = ReferenceMap.load(map_path, verify=False)
@@ -491,10 +495,7 @@ class MatchedFilterIndex:
         puts the query at another place than those of the first `first` do: farther than
         rerank_agreement_m, or turned by more than local_rotation_range_deg (which the local
         stage would not search)."""
-        rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
-        # located rows are (query, di, dj, score): di along y, dj along x, in pooled cells.
-        shift_m = self._shift_m(
-            located[:, [2, 1]] * (self.params.pool * self.params.voxel_size), rotation)
+        shift_m, rotation = self._global_alignment(located, headings)
         implied = query_pose_from_alignment(planar(self.map.poses[references]), shift_m,
                                             rotation)
         apart = np.hypot(*(implied[:, None, :2] - implied[None, :first, :2]).transpose(2, 0, 1))
@@ -502,6 +503,15 @@ class MatchedFilterIndex:
         same = ((apart <= self.search.rerank_agreement_m)
                 & (turned <= np.radians(self.search.local_rotation_range_deg)))
         return ~same.any(axis=1)
+
+    def _global_alignment(self, located: np.ndarray, headings: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """The shifts in metres (n, 2) and rotations in radians (n,) of global alignments
+        (bank.locate rows)."""
+        rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
+        # located rows are (query, di, dj, score): di along y, dj along x, in pooled cells.
+        return self._shift_m(located[:, [2, 1]] * (self.params.pool * self.params.voxel_size),
+                             rotation), rotation
 
     def _shift_m(self, peak_m: np.ndarray, rotation: np.ndarray | float) -> np.ndarray:
         """The alignment's shift in metres (..., 2) from a correlation peak's offset in metres
@@ -617,10 +627,7 @@ class MatchedFilterIndex:
         if len(positions):
             located = (self.bank.peaks(volume, positions) if volume is not None
                        else self.bank.locate(prepared, columns[positions]))
-            rotation = np.radians(self.global_angles[headings[located[:, 0].astype(np.int64)]])
-            distance = np.hypot(*self._shift_m(
-                located[:, [2, 1]] * (self.params.pool * self.params.voxel_size),
-                rotation).T)
+            distance = np.hypot(*self._global_alignment(located, headings)[0].T)
             nearest = int(np.argmin(distance))
             jobs.append((int(searched[positions[nearest]]),
                          float(self.global_angles[headings[int(located[nearest, 0])]])))

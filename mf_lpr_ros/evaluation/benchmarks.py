@@ -20,21 +20,16 @@ _BEVPLACE_RECALL = {"00": (99.7, 99.6), "02": (98.1, 93.5), "05": (99.3, 98.9),
                     "06": (100.0, 100.0)}
 
 
-def _bevplace(folder: str, sequences: tuple[str, ...], requests: bool = False
-              ) -> tuple[tuple[Rule, ...], tuple]:
-    """Rules (each sequence and its _rot copy under folder) and BEVPlace's published recall;
-    with requests, each query searched as a relocalisation request (Protocol.requests), the
-    pairs labelled so."""
+def _bevplace(folder: str, sequences: tuple[str, ...]) -> tuple[tuple[Rule, ...], tuple]:
+    """Rules (each sequence and its _rot copy under folder) and BEVPlace's published recall."""
     rules, published = [], []
     for sequence in sequences:
         database, queries = _BEVPLACE_FRAMES[sequence]
         for suffix, recall in zip(("", "_rot"), _BEVPLACE_RECALL[sequence]):
             pattern = f"{folder}/{sequence}{suffix}"
             protocol = Protocol(5.0, reference_spacing_m=0.0, reference_frames=database,
-                                query_frames=queries, headings_known=suffix != "_rot",
-                                requests=requests)
-            rules.append(Rule("single", "kitti", protocol, (pattern,),
-                              label="requests" if requests else ""))
+                                query_frames=queries, headings_known=suffix != "_rot")
+            rules.append(Rule("single", "kitti", protocol, (pattern,)))
             published.append(Published(pattern.replace("/", "_"), "BEVPlace (published)",
                                        recall / 100.0))
     return tuple(rules), tuple(published)
@@ -84,8 +79,9 @@ _BEVPLACE_HOLDOUT = _bevplace("holdout/kitti_bev", ("02", "05", "06"))
 # The same pairs searched as relocalisation requests: BEVPlace's protocol asks where each scan
 # is, which is what `mf-lpr localise` and the `~/relocalise` service answer, with the
 # prefilter's wider retry for a weak match (since session 41, beside the stream's figures).
-_BEVPLACE_REQUESTS = (_bevplace("kitti_bev", ("00",), requests=True)[0]
-                      + _bevplace("holdout/kitti_bev", ("02", "05", "06"), requests=True)[0])
+_BEVPLACE_REQUESTS = tuple(
+    replace(rule, protocol=replace(rule.protocol, requests=True), label="requests")
+    for rule in _BEVPLACE_TUNING[0] + _BEVPLACE_HOLDOUT[0])
 
 
 _BEVPLACE_TEXT = ("BEVPlace's KITTI protocol on its BEV images: database frames 00: 0-2999, "

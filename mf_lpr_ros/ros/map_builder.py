@@ -25,7 +25,7 @@ from sensor_msgs.msg import PointCloud2
 
 from mf_lpr_ros.core.auto_params import SAMPLE_SCANS
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.search import cache_prefilter, reads_spectra_on_demand
+from mf_lpr_ros.core.search import cache_prefilter
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapFileError, ParameterFault
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.node_settings import POSE_SOURCES, MapBuilderSettings
@@ -145,15 +145,14 @@ class MapBuilderNode(LidarNode):
         demand, as build-map writes them: the localiser's first start then loads them
         instead of computing them (a 1 km^2 grid: ~27 s). Only when the map is done (a
         periodic save would compute them again every save_period_s)."""
-        if not reads_spectra_on_demand(search, n_references):
-            return
         try:
-            status = cache_prefilter(path, search)
+            status = cache_prefilter(path, search, n_references)
         except (OSError, MapFileError) as error:
             self.get_logger().error(f"prefilter features of {path} not cached ({error}); the "
                                     "localiser's first start computes them")
             return
-        self.get_logger().info(f"prefilter features of {path}: {status}")
+        if status is not None:
+            self.get_logger().info(f"prefilter features of {path}: {status}")
 
     def _on_scan(self, message: PointCloud2) -> None:
         decoded = self.decode_scan(message)

@@ -148,6 +148,10 @@ def test_a_map_saved_offline_has_its_cache_written_before_any_search(tmp_path, l
     on_demand = dataclasses.replace(SEARCH, reference_spectra="on_demand")
     assert cache_prefilter(path, SEARCH) is None
     assert not cache_path(path).exists()
+    # Told the map's size, it decides without opening the file.
+    assert cache_prefilter(tmp_path / "not_written.mfmap", SEARCH, len(loop_map)) is None
+    assert cache_prefilter(path, on_demand, len(loop_map)).startswith("no cache at")
+    cache_path(path).unlink()
     status = cache_prefilter(path, on_demand)
     assert status.startswith("no cache at") and "; cached at" in status
     index = MatchedFilterIndex(ReferenceMap.load(path), on_demand)
