@@ -53,9 +53,14 @@ _EXPANDED_LEADERS = 16
 # Map neighbours the candidate stage left out that a nearer view is looked for among, where
 # the map's headings are unknown (_nearer_neighbours): along a route, one on each side.
 _UNSEARCHED_NEIGHBOURS = 2
+# Map neighbours that estimate a reference's heading (_estimate_headings): the farthest ones
+# in reach, where a shift's error turns the direction between the two views least.
+_HEADING_NEIGHBOURS = 4
+_HEADING_BASELINE_M = 2.0
 # search.reference_spectra "auto": spectra in memory up to this many references (~0.9 GB).
 ON_DEMAND_ABOVE = 50_000
 _INDEX_BLOCKS_WITHOUT_PROGRESS = 16
+_HEADINGS_WITHOUT_PROGRESS = 500
 
 
 def _norm_under(image: np.ndarray, mask: np.ndarray, di: int, dj: int) -> float:
@@ -248,6 +253,10 @@ class MatchedFilterIndex:
         self._positions: cKDTree | None = None
         # place_similarity by reference: (the view it was measured from, the figure).
         self._place_similarity: dict[int, tuple[int, float]] = {}
+        # The references' estimated headings (radians), where the map's are unknown and could
+        # be estimated (SearchParams.estimate_map_headings); None: the poses' own, or unknown.
+        self._headings: np.ndarray | None = None
+        self._headings_checked = 0
         # What became of the prefilter cache beside the map file (on demand only).
         self.prefilter_cache_status = "not used"
         self.sync()
@@ -328,6 +337,7 @@ class MatchedFilterIndex:
         query operators' buffers are shared.
         """
         with self._query_lock:
+            self._estimate_headings()
             self._query_offset = np.full(2, float(sensor_offset_m))
             self._query_seen = self._seen(occupancy)
             self._turned_query, self._pooled_turns = {}, {}
@@ -472,7 +482,7 @@ class MatchedFilterIndex:
         best = float(scores[order[0]]) if len(order) else 0.0
         rivals = int(np.count_nonzero(
             scores[order[top_n - 1:]] >= (1.0 - self.search.min_distinctiveness) * best))
-        if (not self.search.another_place_finalist or self.search.map_headings == "unknown"
+        if (not self.search.another_place_finalist or self._headings_unknown
                 or top_n < 2 or best <= 0 or rivals < 2):
             return order[:top_n], None
         eligible = order[: top_n - 1 + rivals]
@@ -496,7 +506,7 @@ class MatchedFilterIndex:
         rerank_agreement_m, or turned by more than local_rotation_range_deg (which the local
         stage would not search)."""
         shift_m, rotation = self._global_alignment(located, headings)
-        implied = query_pose_from_alignment(planar(self.map.poses[references]), shift_m,
+        implied = query_pose_from_alignment(self._planar_poses(references), shift_m,
                                             rotation)
         apart = np.hypot(*(implied[:, None, :2] - implied[None, :first, :2]).transpose(2, 0, 1))
         turned = np.abs(wrap_angle(implied[:, None, 2] - implied[None, :first, 2]))
@@ -550,7 +560,7 @@ class MatchedFilterIndex:
         """
         if self.search.rerank_margin <= 0:
             return None
-        if self.search.map_headings == "unknown":
+        if self._headings_unknown:
             return self._nearest_by_distances(match, peaks, self._nearer_neighbours(
                 occupancy, match, peaks, searched, columns, prepared, headings, volume, n_refs),
                 ranked)
@@ -647,7 +657,7 @@ class MatchedFilterIndex:
         """match reported against another reference that confirmed it: the pose, its
         covariance, the score and the confidence stay the best alignment's (the evidence the
         match is decided on); the constraint is re-expressed in that reference's frame."""
-        reference_pose = planar(self.map.poses[reference])
+        reference_pose = self._planar_poses(reference)
         shift_m, rotation_rad = alignment_from_poses(reference_pose, match.pose)
         return dataclasses.replace(
             match, reference_index=reference, scored_reference=match.reference_index,
@@ -666,9 +676,92 @@ class MatchedFilterIndex:
             located = (self.bank.peaks(volume, column) if volume is not None
                        else self.bank.locate(prepared, columns[column]))
             return float(self.global_angles[headings[int(located[0][0])]])
-        relative = math.degrees(match.pose[2] - planar(self.map.poses[reference])[2])
+        relative = math.degrees(match.pose[2] - self._planar_poses(reference)[2])
         index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
         return float(self.global_angles[index])
+
+    @property
+    def estimated_headings(self) -> np.ndarray | None:
+        """The references' headings (radians) estimated from the map itself where its own are
+        unknown (SearchParams.estimate_map_headings); None where they were not (known, off,
+        or a reference without a neighbour in reach). Waits for a running query."""
+        with self._query_lock:
+            self._estimate_headings()
+            return None if self._headings is None else self._headings.copy()
+
+    @property
+    def _headings_unknown(self) -> bool:
+        """The map's headings are unknown (SearchParams.map_headings) and were not estimated."""
+        return self.search.map_headings == "unknown" and self._headings is None
+
+    def _planar_poses(self, references: "int | np.ndarray") -> np.ndarray:
+        """The references' planar map poses (x, y, yaw), with their estimated headings where
+        the map's own are unknown (_estimate_headings)."""
+        poses = planar(self.map.poses[references])
+        if self._headings is not None:
+            poses[..., 2] = self._headings[references]
+        return poses
+
+    def _estimate_headings(self) -> None:
+        """Where the map's headings are unknown, each new reference's heading from its
+        alignments on its map neighbours (SearchParams.estimate_map_headings): the local
+        stage puts the reference, as a query, at some shift and turn in a neighbour's view;
+        the direction between their map positions against the direction of that shift gives
+        the neighbour view's heading, and the turn the reference's. Every reference needs a
+        neighbour between _HEADING_BASELINE_M and three quarters of max_shift_m (the
+        alignment's peak inside the searched shifts, with room for its fit); else the map's
+        headings stay unknown. Runs before a query's own state is set."""
+        n_refs = len(self)
+        if (self.search.map_headings != "unknown" or not self.search.estimate_map_headings
+                or self.prefilter is None or n_refs <= self._headings_checked):
+            return
+        first, self._headings_checked = self._headings_checked, n_refs
+        if first and self._headings is None:
+            return
+        positions = self.map.poses[:n_refs, :2, 3]
+        reach = 0.75 * self.search.max_shift_m
+        estimated = np.empty(n_refs)
+        if first:
+            estimated[:first] = self._headings
+        self._query_offset = self._map_offset.copy()
+        for reference in progress_bar(range(first, n_refs), desc="estimate map headings",
+                                      unit="reference",
+                                      enabled=n_refs - first > _HEADINGS_WITHOUT_PROGRESS):
+            near = np.asarray(self._reference_positions().query_ball_point(
+                positions[reference], reach), dtype=np.int64)
+            apart = np.hypot(*(positions[near] - positions[reference]).T)
+            keep = apart >= _HEADING_BASELINE_M
+            if not keep.any():
+                self._headings = None
+                return
+            near = near[keep][np.argsort(-apart[keep], kind="stable")[:_HEADING_NEIGHBOURS]]
+            estimated[reference] = self._heading_from(reference, near, positions)
+        self._headings = estimated
+
+    def _heading_from(self, reference: int, neighbours: np.ndarray, positions: np.ndarray
+                      ) -> float:
+        """The reference's heading (radians) from its alignments on neighbours (map
+        positions known): their circular mean weighted by confidence and distance, again
+        without those off it by more than local_rotation_range_deg."""
+        occupancy = self.map.occupancy(reference)
+        self._turned_query, self._query_seen = {}, self._seen(occupancy)
+        half = self.prefilter.angles_between(reference, neighbours)
+        peaks = self._local_peaks(occupancy, [(int(neighbour), float(angle))
+                                              for neighbour, turn in zip(neighbours, half)
+                                              for angle in (turn, turn + 180.0)])
+        headings, weights = [], []
+        for pair in range(len(neighbours)):
+            peak = max(peaks[2 * pair: 2 * pair + 2], key=lambda aligned: aligned.score)
+            shift_m, rotation, _, _ = self._local_alignment(peak)
+            between = positions[reference] - positions[peak.reference]
+            headings.append(math.atan2(between[1], between[0])
+                            - math.atan2(shift_m[1], shift_m[0]) + rotation)
+            weights.append(peak.confidence * float(np.hypot(*between)))
+        headings, weights = np.array(headings), np.array(weights)
+        mean = _circular_mean(headings, weights)
+        close = np.abs(wrap_angle(headings - mean)) <= np.radians(
+            self.search.local_rotation_range_deg)
+        return _circular_mean(headings[close], weights[close]) if close.any() else mean
 
     def _reference_positions(self) -> cKDTree:
         """The references' positions as a spatial index, built when first needed after the map
@@ -683,6 +776,7 @@ class MatchedFilterIndex:
         distinct_radius_m, aligned on this one by the local stage; NaN without one. Waits
         for a running query (it uses the query's buffers)."""
         with self._query_lock:
+            self._estimate_headings()
             return self._place_similarity_of(reference, n_refs)
 
     def _place_similarity_of(self, reference: int, n_refs: int | None = None) -> float:
@@ -710,9 +804,8 @@ class MatchedFilterIndex:
         if kept is not None and kept[0] == neighbour:
             return kept[1]
         occupancy = self.map.occupancy(neighbour)
-        yaws = [] if self.search.map_headings == "unknown" else [
-            math.degrees(planar(self.map.poses[neighbour])[2]
-                         - planar(self.map.poses[reference])[2])]
+        yaws = [] if self._headings_unknown else [
+            math.degrees(self._planar_poses(neighbour)[2] - self._planar_poses(reference)[2])]
         if self.prefilter is not None:
             half = float(self.prefilter.angles_between(neighbour, np.array([reference]))[0])
             yaws += [half, half + 180.0]
@@ -1034,19 +1127,27 @@ class MatchedFilterIndex:
         surface[beside[:, 0], beside[:, 1]] = correlate(beside[:, 0], beside[:, 1])
         return surface
 
-    def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
-        voxel = self.params.voxel_size
+    def _local_alignment(self, peak: "_LocalPeak"
+                         ) -> tuple[np.ndarray, float, np.ndarray, float]:
+        """The local stage's alignment refined between cells and between angles: (shift_m,
+        rotation_rad, the peak's curvature over cells (2x2), its curvature over angles)."""
         surface = peak.surface
         offset, cell_hessian = subcell_peak(surface[peak.angle_index], peak.row, peak.col)
-        peak_value = max(float(surface[peak.angle_index, peak.row, peak.col]), 1e-9)
         per_angle = surface.reshape(len(peak.angles), -1).max(axis=1)
         angle_offset, angle_curvature = subsample_peak(per_angle, peak.angle_index)
-        step = self.search.local_rotation_step_deg
-        rotation_deg = peak.angles[peak.angle_index] + angle_offset * step
+        rotation_deg = (peak.angles[peak.angle_index]
+                        + angle_offset * self.search.local_rotation_step_deg)
         shift_cells = np.array([peak.col - self.high_shift + offset[0],
                                 peak.row - self.high_shift + offset[1]])
         rotation = math.radians(rotation_deg)
-        shift_m = self._shift_m(shift_cells * voxel, rotation)
+        return (self._shift_m(shift_cells * self.params.voxel_size, rotation), rotation,
+                cell_hessian, angle_curvature)
+
+    def _result(self, peak: "_LocalPeak", ranked: np.ndarray) -> MatchResult:
+        voxel = self.params.voxel_size
+        shift_m, rotation, cell_hessian, angle_curvature = self._local_alignment(peak)
+        peak_value = max(float(peak.surface[peak.angle_index, peak.row, peak.col]), 1e-9)
+        step = self.search.local_rotation_step_deg
 
         inflation = 1.0 / max(peak.confidence, _MIN_CONFIDENCE_FOR_COVARIANCE)
         relative_covariance = np.zeros((3, 3))
@@ -1063,7 +1164,7 @@ class MatchedFilterIndex:
             yaw_variance_deg2 = self.search.local_rotation_range_deg ** 2
         relative_covariance[2, 2] = math.radians(1.0) ** 2 * yaw_variance_deg2
 
-        reference_pose = planar(self.map.poses[peak.reference])
+        reference_pose = self._planar_poses(peak.reference)
         pose = query_pose_from_alignment(reference_pose, shift_m, rotation)
         return MatchResult(
             reference_index=peak.reference, score=peak.score, confidence=peak.confidence,
@@ -1071,6 +1172,11 @@ class MatchedFilterIndex:
             covariance=rotate_covariance(relative_covariance, reference_pose[2]),
             relative_covariance=relative_covariance,
             candidates=_led_by(peak.reference, ranked))
+
+
+def _circular_mean(angles: np.ndarray, weights: np.ndarray) -> float:
+    return math.atan2(float(np.dot(weights, np.sin(angles))),
+                      float(np.dot(weights, np.cos(angles))))
 
 
 def _led_by(reference: int, ranked: np.ndarray) -> np.ndarray:

@@ -427,6 +427,66 @@ def _heading_errors(count: int) -> np.ndarray:
     return np.random.default_rng(3).uniform(np.radians(30), np.radians(170), count)
 
 
+# Headings unknown and left so: the re-ranking by distances between alignments.
+_UNESTIMATED = {"map_headings": "unknown", "estimate_map_headings": False}
+
+
+def test_a_map_of_unknown_headings_estimates_them_from_its_neighbours():
+    # The street's views turned by 30-170 degrees against their poses' yaws. Each reference,
+    # aligned on its map neighbours, gives its view's heading: the direction between their
+    # positions against the direction of the alignment's shift. With those the map searches
+    # as one of known headings: a query's pose lies in the map frame, and the reference
+    # nearest it is reported. Left unknown, the poses carry the turns.
+    street, xs = _street()
+    wrong = turned_view_map(street, [(view, turn, 0.0) for view, turn in
+                                     enumerate(_heading_errors(len(street)))])
+    index = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown"))
+    errors = np.degrees(np.abs(wrap_angle(index.estimated_headings
+                                          - planar(street.poses)[:, 2])))
+    assert errors.max() < 2.0
+    unestimated = MatchedFilterIndex(wrong, SearchParams(**_UNESTIMATED))
+    assert unestimated.estimated_headings is None
+    misplaced = 0
+    for x, points, pose in _queries_along_the_street():
+        query = describe_points(points, PARAMS)
+        match = index.query(query)
+        assert abs(xs[match.reference_index] - x) <= 1.01
+        assert np.hypot(*(match.pose[:2] - pose[:2, 3])) < 0.3
+        misplaced += np.hypot(*(unestimated.query(query).pose[:2] - pose[:2, 3])) > 1.0
+    assert misplaced >= 20
+
+
+def test_a_growing_map_of_unknown_headings_estimates_its_new_references_at_the_next_query():
+    street, _ = _street()
+    views = list(enumerate(_heading_errors(len(street))))
+    whole = turned_view_map(street, [(view, turn, 0.0) for view, turn in views])
+    growing = turned_view_map(street, [(view, turn, 0.0) for view, turn in views[:10]])
+    index = MatchedFilterIndex(growing, SearchParams(map_headings="unknown"))
+    assert len(index.estimated_headings) == 10
+    for view in range(10, len(street)):
+        growing.append(whole.occupancy(view), whole.poses[view], float(view), view)
+    index.sync()
+    errors = np.degrees(np.abs(wrap_angle(index.estimated_headings
+                                          - planar(street.poses)[:, 2])))
+    assert len(errors) == len(street) and errors.max() < 2.0
+
+
+def test_headings_stay_unknown_where_a_reference_has_no_neighbour_in_reach():
+    # One view every 8 m: no neighbour lies within three quarters of max_shift_m (6 m), so no
+    # alignment can tell a heading, and the map searches as one of unknown headings.
+    street, xs = _street()
+    sparse = turned_view_map(street, [(view, turn, 0.0) for view, turn in zip(
+        range(0, len(street), 4), _heading_errors(len(street)))])
+    index = MatchedFilterIndex(sparse, SearchParams(map_headings="unknown"))
+    assert index.estimated_headings is None
+    unestimated = MatchedFilterIndex(sparse, SearchParams(**_UNESTIMATED))
+    for x, points, _ in _queries_along_the_street():
+        query = describe_points(points, PARAMS)
+        first, second = index.query(query), unestimated.query(query)
+        assert first.reference_index == second.reference_index
+        np.testing.assert_allclose(first.pose, second.pose)
+
+
 def test_query_poses_from_a_batch_of_alignments_are_each_alignments_pose():
     rng = np.random.default_rng(4)
     references = np.c_[rng.uniform(-30, 30, (6, 2)), rng.uniform(-np.pi, np.pi, 6)]
@@ -465,8 +525,8 @@ def test_a_map_of_unknown_headings_reports_a_nearer_view_by_distances():
     street, xs = _street()
     wrong = turned_view_map(street, [(view, turn, 0.0) for view, turn in
                                      enumerate(_heading_errors(len(street)))])
-    off = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", rerank_margin=0.0))
-    unknown = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown"))
+    off = MatchedFilterIndex(wrong, SearchParams(**_UNESTIMATED, rerank_margin=0.0))
+    unknown = MatchedFilterIndex(wrong, SearchParams(**_UNESTIMATED))
     nearer = 0
     for x, points, _ in _queries_along_the_street():
         query = describe_points(points, PARAMS)
@@ -487,9 +547,8 @@ def test_a_nearer_view_of_a_look_alike_place_is_not_reported_when_headings_are_u
     turns = _heading_errors(2 * n_views)
     doubled = turned_view_map(street, [(k % n_views, turn, 0.0 if k < n_views else 500.0)
                                        for k, turn in enumerate(turns)])
-    off = MatchedFilterIndex(doubled, SearchParams(map_headings="unknown", rerank_margin=0.0,
-                                                   top_n=4))
-    unknown = MatchedFilterIndex(doubled, SearchParams(map_headings="unknown", top_n=4))
+    off = MatchedFilterIndex(doubled, SearchParams(**_UNESTIMATED, rerank_margin=0.0, top_n=4))
+    unknown = MatchedFilterIndex(doubled, SearchParams(**_UNESTIMATED, top_n=4))
     across = 0
     for _, points, _ in _queries_along_the_street():
         query = describe_points(points, PARAMS)
@@ -664,9 +723,9 @@ def test_a_map_of_unknown_headings_reports_the_nearest_view_among_the_matchs_nei
     street, xs = _street()
     wrong = turned_view_map(street, [(view, turn, 0.0) for view, turn in
                                      enumerate(_heading_errors(len(street)))])
-    off = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", rerank_margin=0.0,
+    off = MatchedFilterIndex(wrong, SearchParams(**_UNESTIMATED, rerank_margin=0.0,
                                                  **candidates))
-    unknown = MatchedFilterIndex(wrong, SearchParams(map_headings="unknown", **candidates))
+    unknown = MatchedFilterIndex(wrong, SearchParams(**_UNESTIMATED, **candidates))
     nearest = beside_finalists = 0
     for x, points, _ in _queries_along_the_street():
         query = describe_points(points, PARAMS)
