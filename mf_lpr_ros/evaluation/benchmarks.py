@@ -88,8 +88,9 @@ _BEVPLACE_TEXT = ("BEVPlace's KITTI protocol on its BEV images: database frames 
                   "02: 0-3399, 05: 0-999, 06: 0-599 (every frame a reference), queries 00: "
                   "3200-4540, 02: 3600-4660, 05: 1200-2750, 06: 800-1100, 5 m (2-D); each "
                   "sequence and its _rot copy (every frame turned by its own random yaw, poses "
-                  "unrotated: searched as a map whose headings are unknown, only retrieval is "
-                  "scored there, the pose figures are NaN), "
+                  "unrotated: searched as a map whose headings are unknown, each estimated "
+                  "from its neighbours' alignments; only retrieval is scored there, the pose "
+                  "figures are NaN), "
                   "with BEVPlace's published recall@1 beside; each searched as a loop-closure "
                   "stream searches, and as relocalisation requests ([requests]: a weak match "
                   "searched again over the prefilter's wider list)")
