@@ -324,7 +324,8 @@ class MatchedFilterIndex:
         return self.map.source_references
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
-              sensor_offset_m: float = 0.0, request: bool = False) -> MatchResult | None:
+              sensor_offset_m: float = 0.0, request: bool = False,
+              on_a_revisit: bool = False) -> MatchResult | None:
         """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
 
         sensor_offset_m: the query's Scan.sensor_offset_m; the map's is in its metadata. Both
@@ -333,6 +334,8 @@ class MatchedFilterIndex:
         request: the query answers a relocalisation request (the scan is expected inside the
         map, and the answer may take longer): a weak match is searched again over the
         prefilter's wider list (SearchParams.prefilter_retry).
+        on_a_revisit: a stream's verifier holds a closure confirmed near (MatchVerifier.
+        on_a_revisit): under prefilter_retry "revisits" the scan retries as a request does.
         Returns None when there is no reference to search. One query at a time per index: the
         query operators' buffers are shared.
         """
@@ -342,7 +345,8 @@ class MatchedFilterIndex:
             self._query_seen = self._seen(occupancy)
             self._turned_query, self._pooled_turns = {}, {}
             with self._workers.own_cores():
-                return self._query(occupancy, n_active, request)
+                return self._query(occupancy, n_active, request or (
+                    on_a_revisit and self.search.prefilter_retry == "revisits"))
 
     def _query(self, occupancy: np.ndarray, n_active: int | None, request: bool
                ) -> MatchResult | None:

@@ -210,6 +210,11 @@ class OdometryConsistency:
                     self._awaiting_vouch.append(current)
         return count, confirmed, vouched
 
+    @property
+    def anchors(self) -> list[_Candidate]:
+        """The confirmed candidates in the vouch window (as of the last advance)."""
+        return self._anchors
+
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
         (they are published and forgotten)."""
@@ -276,6 +281,13 @@ class MatchVerifier:
                 f"search.consistency_min_support to 0")
         self.consistency = OdometryConsistency(
             search, max(search.consistency_min_separation_m, submap_m))
+
+    @property
+    def on_a_revisit(self) -> bool:
+        """A closure was confirmed within consistency_vouch_window_m of travel (as of the last
+        verified query): the robot is on a revisit of the map, so its next scan is expected
+        inside it (SearchParams.prefilter_retry "revisits")."""
+        return self.consistency_active and bool(self.consistency.anchors)
 
     def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,
                fitness_of: Callable[[MatchResult], float] | None = None,

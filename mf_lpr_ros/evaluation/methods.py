@@ -91,7 +91,8 @@ class MatchedFilterMethod:
     def query(self, descriptor: DescribedScan, n_active: int, odometry: np.ndarray
               ) -> Retrieval:
         match = self._index.query(descriptor.occupancy, n_active=n_active,
-                                  sensor_offset_m=descriptor.sensor_offset_m)
+                                  sensor_offset_m=descriptor.sensor_offset_m,
+                                  on_a_revisit=self._verifier.on_a_revisit)
         geometric = None
         if descriptor.cloud is not None and self._index.map.has_clouds:
             def geometric(found):

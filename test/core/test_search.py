@@ -257,13 +257,16 @@ def _ranking_prefilter(index, ranking):
     return asked
 
 
-@pytest.mark.parametrize("retry_top_k, retry, answers_request, retried", [
-    (0, "every_query", True, False),          # no wider list to search
-    (4, "requests", False, False),            # a stream's query: the default never retries it
-    (4, "requests", True, True),              # a relocalisation request
-    (4, "every_query", False, True)])
+@pytest.mark.parametrize("retry_top_k, retry, answers_request, on_a_revisit, retried", [
+    (0, "every_query", True, True, False),      # no wider list to search
+    (4, "requests", False, True, False),        # a stream's query, even on a revisit
+    (4, "requests", True, False, True),         # a relocalisation request
+    (4, "revisits", False, False, False),       # a stream's query off any revisit
+    (4, "revisits", False, True, True),         # a stream's query on a revisit
+    (4, "revisits", True, False, True),
+    (4, "every_query", False, False, True)])
 def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
-        world, synthetic_map, retry_top_k, retry, answers_request, retried):
+        world, synthetic_map, retry_top_k, retry, answers_request, on_a_revisit, retried):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     query = describe_points(points, PARAMS)
     index = MatchedFilterIndex(synthetic_map, SearchParams(
@@ -271,7 +274,7 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
         prefilter_retry=retry, prefilter_expand_m=0.0))
     # The prefilter puts the true place (reference 0) fourth.
     asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
-    result = index.query(query, request=answers_request)
+    result = index.query(query, request=answers_request, on_a_revisit=on_a_revisit)
     if retried:
         assert asked == [1, 4]
         assert result.reference_index == 0

@@ -444,6 +444,25 @@ def test_support_expires_after_the_travel_window():
     assert first.support == 0 and later.support == 0 and not later.accepted
 
 
+def test_the_verifier_is_on_a_revisit_from_a_confirmed_closure_until_the_vouch_window_ends():
+    # What a stream's search reads before each scan (SearchParams.prefilter_retry
+    # "revisits"): a closure confirmed within consistency_vouch_window_m of travel.
+    search = SearchParams(consistency_min_support=2, consistency_vouch_window_m=20.0)
+    verifier = MatchVerifier(search)
+    odometry = _drive(30, step_m=2.0)
+    map_T_odom = np.array([100.0, -20.0, 0.7])
+    truth = compose_planar(map_T_odom, odometry)
+    on_a_revisit = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        verifier.verify(_match(pose + [0.2, -0.1, 0.01]) if index < 4 else None, odo)
+        on_a_revisit.append(verifier.on_a_revisit)
+    # Confirmed at the third match (two agree with it); 20 m of travel after the last
+    # confirmed one (the fourth match, at 6 m), the revisit is over.
+    assert on_a_revisit[:2] == [False, False]
+    assert all(on_a_revisit[2:14]) and not any(on_a_revisit[14:])
+    assert not MatchVerifier(search, odometry_known=False).on_a_revisit
+
+
 def test_cheap_tests_run_before_icp_and_icp_decides():
     search = SearchParams(min_confidence=0.5, min_distinctiveness=0.2, verify_fitness=0.6,
                           consistency_min_support=0)

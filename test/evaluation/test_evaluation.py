@@ -144,9 +144,10 @@ def test_where_headings_are_unknown_the_search_is_told_and_poses_are_not_scored(
 
 def test_a_protocol_of_requests_searches_each_query_as_a_relocalisation_request(monkeypatch):
     # BEVPlace's protocol asks where each scan is: its [requests] pairs search as `localise`
-    # does, a weak match again over the prefilter's wider list; every other pair as a stream.
+    # does, a weak match again over the prefilter's wider list; every other pair as a stream
+    # (which retries only while on a revisit).
     told = _search_told(monkeypatch, lambda search: search.prefilter_retry)
-    for requests, expected in ((False, "requests"), (True, "every_query")):
+    for requests, expected in ((False, "revisits"), (True, "every_query")):
         evaluate_pair(Line(10), preset("kitti"), Protocol(3.0, exclude_recent_frames=2,
                                                           requests=requests))
         assert told[-1] == expected

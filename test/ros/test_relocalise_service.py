@@ -168,7 +168,7 @@ def test_a_request_searches_wider_where_the_candidate_stage_leaves_the_place_out
     """A robot the candidate stage fails (here the prefilter ranks the map's places in reverse
     and one candidate is searched: a wrong place, and nothing to tell it from) gets nothing
     published from its stream of scans, which are not searched again; a ~/relocalise call
-    searches its scans again over the wider list (search.prefilter_retry: requests, here
+    searches its scans again over the wider list (search.prefilter_retry: always a request, here
     every reference) and answers with the right pose."""
     path, queries = synthetic_map
     node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
