@@ -198,15 +198,19 @@ class SearchParams:
         exhaustive search's. prefilter_retry says which searches retry: "requests" only a
         relocalisation request's (a ~/relocalise call waiting for its answer, `mf-lpr
         localise`), where every query is inside the map and an answer may take longer;
-        "revisits" (default) a loop-closure stream's too while it is on a revisit, a closure
-        confirmed within consistency_vouch_window_m of travel (MatchVerifier.on_a_revisit):
-        its scans are then inside the map, as a request's are, and scans off the map are not
-        searched twice (KITTI 00 against one reference per 8 m: candidate recall 0.994 ->
-        1.000, recall@1 0.994 -> 0.997; tuning suite 0.8962 -> 0.8963, none false;
-        docs/RESULTS.md, session 42); "every_query" every scan of a stream, where most scans
-        revisit nothing and a scan from outside the map is weak as well, so the stream pays
-        ~2.5x its time (KITTI 00 closures 12.5 -> 33.9 ms a query at 256; docs/RESULTS.md,
-        session 16). Without the retry a robot standing still where the prefilter misses its
+        "revisits" (default) a loop-closure stream's too where its weak match contradicts the
+        revisit it is on: the closures confirmed within consistency_vouch_window_m of
+        travel, carried along the odometry, put the scan at a place the map holds (a
+        reference within max_shift_m) and none puts it where the weak match does
+        (MatchVerifier.revisit_places). A weak match where the revisit puts it is the right
+        place, weakly seen; a revisit carried past the mapped route puts the scan where the
+        map cannot answer. KITTI 00 against one reference per 8 m: candidate recall 0.994 ->
+        0.999, recall@1 0.994 -> 0.999; tuning suite 0.8962 -> 0.8964, none false, 11 of
+        its queries searched with another answer (docs/RESULTS.md, session 42);
+        "every_query" every scan of a stream, where most scans revisit nothing and a scan
+        from outside the map is weak as well, so the stream pays ~2.5x its time (KITTI 00
+        closures 12.5 -> 33.9 ms a query at 256; docs/RESULTS.md, session 16). Without the
+        retry a robot standing still where the prefilter misses its
         place would never be relocalised: each of its scans is the same query.
     prefilter_expand_m: the prefilter's 16 best references bring along every reference within
         this distance of them (map positions): the same place seen from a few metres away often

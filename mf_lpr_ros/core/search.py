@@ -325,7 +325,8 @@ class MatchedFilterIndex:
 
     def query(self, occupancy: np.ndarray, n_active: int | None = None, *,
               sensor_offset_m: float = 0.0, request: bool = False,
-              on_a_revisit: bool = False) -> MatchResult | None:
+              revisit_places: Callable[[MatchResult], np.ndarray] | None = None
+              ) -> MatchResult | None:
         """Match one query occupancy (D x D bool, no patch cap) against references [0, n_active).
 
         sensor_offset_m: the query's Scan.sensor_offset_m; the map's is in its metadata. Both
@@ -334,8 +335,10 @@ class MatchedFilterIndex:
         request: the query answers a relocalisation request (the scan is expected inside the
         map, and the answer may take longer): a weak match is searched again over the
         prefilter's wider list (SearchParams.prefilter_retry).
-        on_a_revisit: a stream's verifier holds a closure confirmed near (MatchVerifier.
-        on_a_revisit): under prefilter_retry "revisits" the scan retries as a request does.
+        revisit_places: under prefilter_retry "revisits", where a stream's revisit puts the
+        scan when it contradicts a weak match ((k, 2) map positions, MatchVerifier.
+        revisit_places): when the map holds a reference within max_shift_m of one, the scan
+        retries as a request does.
         Returns None when there is no reference to search. One query at a time per index: the
         query operators' buffers are shared.
         """
@@ -345,20 +348,20 @@ class MatchedFilterIndex:
             self._query_seen = self._seen(occupancy)
             self._turned_query, self._pooled_turns = {}, {}
             with self._workers.own_cores():
-                return self._query(occupancy, n_active, request or (
-                    on_a_revisit and self.search.prefilter_retry == "revisits"))
+                return self._query(occupancy, n_active, request, revisit_places)
 
-    def _query(self, occupancy: np.ndarray, n_active: int | None, request: bool
+    def _query(self, occupancy: np.ndarray, n_active: int | None, request: bool,
+               revisit_places: Callable[[MatchResult], np.ndarray] | None = None
                ) -> MatchResult | None:
         n_refs = len(self) if n_active is None else min(n_active, len(self))
         if n_refs <= 0:
             return None
         top_k, retry_top_k = self.search.prefilter_top_k, self.search.prefilter_retry_top_k
         result = self._search(occupancy, n_refs, top_k)
-        retries = request or self.search.prefilter_retry == "every_query"
-        if (retries and self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
+        if (self.prefilter is not None and n_refs > top_k and retry_top_k > top_k
                 and not passes_confidence(result.confidence, result.place_similarity,
-                                          self.search)):
+                                          self.search)
+                and self._retries(result, request, revisit_places, n_refs)):
             # Where the prefilter left the true place out, the match found instead is weak
             # (SearchParams.prefilter_retry_top_k): search its wider list.
             first_ms = result.timings_ms
@@ -366,6 +369,24 @@ class MatchedFilterIndex:
             result.timings_ms = {stage: ms + first_ms[stage]
                                  for stage, ms in result.timings_ms.items()}
         return result
+
+    def _retries(self, weak: MatchResult, request: bool,
+                 revisit_places: Callable[[MatchResult], np.ndarray] | None,
+                 n_refs: int) -> bool:
+        """Whether a weak match is searched again (SearchParams.prefilter_retry): under
+        "revisits", where the revisit puts the scan at a place the map holds (a reference
+        among the first n_refs within max_shift_m, where the search could align it); a
+        revisit carried on past the mapped route puts it nowhere the map can answer."""
+        mode = self.search.prefilter_retry
+        if request or mode == "every_query":
+            return True
+        if mode != "revisits" or revisit_places is None:
+            return False
+        places = revisit_places(weak)
+        if not len(places):
+            return False
+        found = self._reference_positions().query_ball_point(places, self.search.max_shift_m)
+        return any(reference < n_refs for near in found for reference in near)
 
     def _search(self, occupancy: np.ndarray, n_refs: int, top_k: int) -> MatchResult:
         """The two stages over the prefilter's top_k candidates (every reference when the

@@ -210,10 +210,21 @@ class OdometryConsistency:
                     self._awaiting_vouch.append(current)
         return count, confirmed, vouched
 
-    @property
-    def anchors(self) -> list[_Candidate]:
-        """The confirmed candidates in the vouch window (as of the last advance)."""
-        return self._anchors
+    def places_elsewhere(self, odometry: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+        """(k, 2) positions at which the confirmed candidates of the vouch window (as of the
+        last advance), carried along the odometry, put the query, when none of them puts it
+        where estimate does; else (0, 2)."""
+        if not self._anchors:
+            return np.zeros((0, 2))
+        odometry = np.asarray(odometry, dtype=np.float64)
+        match = _Candidate(odometry, np.asarray(estimate, dtype=np.float64), self.travelled_m,
+                           None, -1, False)
+        if self._agreeing(self._anchors, match, 0.0).any():
+            return np.zeros((0, 2))
+        anchors_odometry = np.stack([anchor.odometry for anchor in self._anchors])
+        anchors_estimate = np.stack([anchor.estimate for anchor in self._anchors])
+        return compose_planar(anchors_estimate,
+                              relative_planar(anchors_odometry, odometry))[:, :2]
 
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
@@ -282,12 +293,15 @@ class MatchVerifier:
         self.consistency = OdometryConsistency(
             search, max(search.consistency_min_separation_m, submap_m))
 
-    @property
-    def on_a_revisit(self) -> bool:
-        """A closure was confirmed within consistency_vouch_window_m of travel (as of the last
-        verified query): the robot is on a revisit of the map, so its next scan is expected
-        inside it (SearchParams.prefilter_retry "revisits")."""
-        return self.consistency_active and bool(self.consistency.anchors)
+    def revisit_places(self, match: MatchResult, odometry: np.ndarray | None) -> np.ndarray:
+        """(k, 2) map positions at which the revisit the robot is on puts the query, when match
+        contradicts it: the closures confirmed within consistency_vouch_window_m of travel
+        (as of the last verified query), carried along the odometry, and none of them puts
+        the query where match does. A weak match there suggests the candidate stage left
+        the place out (SearchParams.prefilter_retry "revisits"). Else (0, 2)."""
+        if not self.consistency_active or odometry is None:
+            return np.zeros((0, 2))
+        return self.consistency.places_elsewhere(odometry, match.pose)
 
     def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,
                fitness_of: Callable[[MatchResult], float] | None = None,

@@ -92,7 +92,8 @@ class MatchedFilterMethod:
               ) -> Retrieval:
         match = self._index.query(descriptor.occupancy, n_active=n_active,
                                   sensor_offset_m=descriptor.sensor_offset_m,
-                                  on_a_revisit=self._verifier.on_a_revisit)
+                                  revisit_places=lambda weak: self._verifier.revisit_places(
+                                      weak, odometry))
         geometric = None
         if descriptor.cloud is not None and self._index.map.has_clouds:
             def geometric(found):

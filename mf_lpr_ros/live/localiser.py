@@ -163,10 +163,12 @@ class Localiser:
         if self.mode == "loop_closure":
             n_active = int(np.searchsorted(self.map.stamps, stamp - self.exclude_recent_s,
                                            side="right"))
-        match = self.index.query(occupancy, n_active, request=request,
-                                 on_a_revisit=self.verifier.on_a_revisit) if n_active else None
         odometry = planar(pose) if pose is not None and self.verifier.consistency_active \
             else None
+        match = self.index.query(
+            occupancy, n_active, request=request,
+            revisit_places=lambda weak: self.verifier.revisit_places(weak, odometry)
+        ) if n_active else None
         verdict = self.verifier.verify(
             match, odometry, lambda found: refine_match(found, points, self.map).fitness,
             key=stamp)

@@ -257,16 +257,26 @@ def _ranking_prefilter(index, ranking):
     return asked
 
 
-@pytest.mark.parametrize("retry_top_k, retry, answers_request, on_a_revisit, retried", [
-    (0, "every_query", True, True, False),      # no wider list to search
-    (4, "requests", False, True, False),        # a stream's query, even on a revisit
-    (4, "requests", True, False, True),         # a relocalisation request
-    (4, "revisits", False, False, False),       # a stream's query off any revisit
-    (4, "revisits", False, True, True),         # a stream's query on a revisit
-    (4, "revisits", True, False, True),
-    (4, "every_query", False, False, True)])
+# Where a stream's revisit puts the scan when it contradicts the weak match
+# (MatchVerifier.revisit_places): None, no verifier's answer; "agrees", nowhere (the weak
+# match is where the revisit puts it); "mapped", at the query's true place; "unmapped", 900 m
+# from any reference (a revisit carried on past the mapped route).
+_REVISIT_PLACES = {"agrees": np.zeros((0, 2)), "mapped": np.array([[1.3, -0.7]]),
+                   "unmapped": np.array([[900.0, 900.0]])}
+
+
+@pytest.mark.parametrize("retry_top_k, retry, answers_request, revisit, retried", [
+    (0, "every_query", True, "mapped", False),      # no wider list to search
+    (4, "requests", False, "mapped", False),        # a stream's query, even where contradicted
+    (4, "requests", True, "agrees", True),          # a relocalisation request
+    (4, "revisits", False, None, False),            # a stream without a verifier's answer
+    (4, "revisits", False, "agrees", False),
+    (4, "revisits", False, "mapped", True),
+    (4, "revisits", False, "unmapped", False),
+    (4, "revisits", True, "agrees", True),
+    (4, "every_query", False, "agrees", True)])
 def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
-        world, synthetic_map, retry_top_k, retry, answers_request, on_a_revisit, retried):
+        world, synthetic_map, retry_top_k, retry, answers_request, revisit, retried):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     query = describe_points(points, PARAMS)
     index = MatchedFilterIndex(synthetic_map, SearchParams(
@@ -274,7 +284,17 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
         prefilter_retry=retry, prefilter_expand_m=0.0))
     # The prefilter puts the true place (reference 0) fourth.
     asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
-    result = index.query(query, request=answers_request, on_a_revisit=on_a_revisit)
+    asked_of = []
+
+    def revisit_places(weak):
+        asked_of.append(weak.reference_index)
+        return _REVISIT_PLACES[revisit]
+
+    result = index.query(query, request=answers_request,
+                         revisit_places=None if revisit is None else revisit_places)
+    # The stream is asked about a weak match only, and only where its answer decides.
+    assert asked_of == ([3] if retry == "revisits" and not answers_request
+                        and revisit is not None else [])
     if retried:
         assert asked == [1, 4]
         assert result.reference_index == 0

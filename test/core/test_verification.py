@@ -444,23 +444,33 @@ def test_support_expires_after_the_travel_window():
     assert first.support == 0 and later.support == 0 and not later.accepted
 
 
-def test_the_verifier_is_on_a_revisit_from_a_confirmed_closure_until_the_vouch_window_ends():
-    # What a stream's search reads before each scan (SearchParams.prefilter_retry
-    # "revisits"): a closure confirmed within consistency_vouch_window_m of travel.
+def test_a_revisit_names_where_it_puts_the_query_only_when_a_match_contradicts_it():
+    # What a stream's search asks of a weak match (SearchParams.prefilter_retry "revisits"):
+    # within consistency_vouch_window_m of travel after a confirmed closure, where do the
+    # confirmed closures, carried along the odometry, put the query, if not where the match
+    # does?
     search = SearchParams(consistency_min_support=2, consistency_vouch_window_m=20.0)
     verifier = MatchVerifier(search)
     odometry = _drive(30, step_m=2.0)
     map_T_odom = np.array([100.0, -20.0, 0.7])
     truth = compose_planar(map_T_odom, odometry)
-    on_a_revisit = []
+    elsewhere = truth + [40.0, 15.0, 0.3]
+    here, there = [], []
     for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        here.append(verifier.revisit_places(_match(pose), odo))
+        there.append(verifier.revisit_places(_match(elsewhere[index]), odo))
         verifier.verify(_match(pose + [0.2, -0.1, 0.01]) if index < 4 else None, odo)
-        on_a_revisit.append(verifier.on_a_revisit)
-    # Confirmed at the third match (two agree with it); 20 m of travel after the last
-    # confirmed one (the fourth match, at 6 m), the revisit is over.
-    assert on_a_revisit[:2] == [False, False]
-    assert all(on_a_revisit[2:14]) and not any(on_a_revisit[14:])
-    assert not MatchVerifier(search, odometry_known=False).on_a_revisit
+    # Asked before each scan is verified: the revisit begins with the scan after the third
+    # match (which two agreeing ones confirm), and ends once the scan before has travelled
+    # 20 m past the last confirmed one (the fourth, at 6 m). Where the revisit puts the
+    # query, nothing contradicts it.
+    assert not any(len(places) for places in here)
+    assert [len(places) > 0 for places in there] == [False] * 3 + [True] * 12 + [False] * 15
+    for index in range(3, 15):
+        # One place per confirmed closure, each where the match it was confirmed on puts it.
+        assert np.abs(there[index] - (truth[index, :2] + [0.2, -0.1])).max() < 0.3
+    assert not len(MatchVerifier(search, odometry_known=False).revisit_places(
+        _match(elsewhere[5]), odometry[5]))
 
 
 def test_cheap_tests_run_before_icp_and_icp_decides():
