@@ -210,8 +210,8 @@ class SearchParams:
         "every_query" every scan of a stream, where most scans revisit nothing and a scan
         from outside the map is weak as well, so the stream pays ~2.5x its time (KITTI 00
         closures 12.5 -> 33.9 ms a query at 256; docs/RESULTS.md, session 16). Without the
-        retry a robot standing still where the prefilter misses its
-        place would never be relocalised: each of its scans is the same query.
+        retry a robot standing still where the prefilter misses its place would never be
+        relocalised: each of its scans is the same query.
     prefilter_expand_m: the prefilter's 16 best references bring along every reference within
         this distance of them (map positions): the same place seen from a few metres away often
         scores just below them in the exact search, and the prefilter ranks such neighbours
