@@ -216,6 +216,47 @@ def test_a_revisit_that_starts_at_a_look_alike_place_is_published_once_a_closure
     assert not any(look_alike in later.confirms for later in results)
 
 
+@pytest.mark.parametrize("retry, retried", [("revisits", True), ("requests", False)])
+def test_a_stream_searches_again_where_a_weak_match_contradicts_its_revisit(
+        world, retry, retried):
+    """The revisit's first three matches confirm a closure; then the candidate stage leaves
+    the true place out (three candidates, all over 40 m away). Under "revisits"
+    the weak match, which the confirmed closure carried along the odometry contradicts, is
+    searched again over the wider list and the true place found; a stream under "requests"
+    keeps the weak match."""
+    config = dataclasses.replace(CONFIG, search=dataclasses.replace(
+        CONFIG.search, prefilter_top_k=3, prefilter_retry_top_k=64, prefilter_expand_m=0.0,
+        prefilter_retry=retry))
+    localiser = Localiser(ReferenceMap(config.descriptor), config, mode="loop_closure",
+                          exclude_recent_s=10.0)
+    ranking = localiser.index.prefilter.top
+    current = [0]
+
+    def top(image, k, stop=None):
+        place = current[0] - 20
+        if k > 3 or place < 0:
+            return ranking(image, k, stop)
+        return np.array([place, 10, 11] if place < 3 else [10, 11, 12])
+
+    localiser.index.prefilter.top = top
+    rng = np.random.default_rng(5)
+    trajectory = route(20)
+    results = []
+    for index, (x, y, yaw) in enumerate(np.vstack([trajectory, trajectory[:6]])):
+        current[0] = index
+        points, pose = scan_world(world, x, y, yaw, rng)
+        results.append(localiser.localise(float(index), points, pose))
+        localiser.add_reference(PairedScan(index, float(index), points, pose))
+    assert all(r.accepted and r.match.reference_index == i for i, r in enumerate(results[20:23]))
+    for index in (23, 24, 25):
+        match = results[index].match
+        if retried:
+            assert match.reference_index == index - 20
+            assert np.hypot(*(match.pose[:2] - trajectory[index - 20][:2])) < 0.5
+        else:
+            assert match.reference_index == 10 and not results[index].accepted
+
+
 def test_localiser_refuses_a_map_with_other_parameters(world):
     other = ReferenceMap(preset("default").descriptor)
     with pytest.raises(MapParameterMismatch, match="voxel_size"):
