@@ -62,7 +62,7 @@ def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph
     closures = ros_graph.collect(Float64MultiArray, "loop_closure")
     poses = ros_graph.collect(PoseWithCovarianceStamped, "relocalisation")
     paths = ros_graph.collect(Path, "path")
-    report = replay_bag(bag, rate=4.0, node=ros_graph.node, wait_for_subscribers=2,
+    report = replay_bag(bag, rate=2.0, node=ros_graph.node, wait_for_subscribers=2,
                         progress=False)
     assert report.published == {"/points": len(sequence), "/odom": len(sequence)}
     ros_graph.wait_for(lambda: builder.counters["scans_received"] == len(sequence), 10)
@@ -101,8 +101,9 @@ def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph
     revisited = revisits(sequence.stamps, sequence.poses[:, :3, 3], CONFIG.spacing_m,
                          EXCLUDE_RECENT_S, radius_m=3.0)
     assert len(revisited) >= 5
-    # Newest scan only: at 4x the bag's rate a loaded machine drops scans, and a dropped
-    # revisit cannot close; most of those searched must.
+    # Newest scan only: a loaded machine drops scans, and a dropped revisit cannot close; most
+    # of those searched must. At 2x the bag's rate (4x before session 42: a CI run searched 3
+    # revisits and closed none, the scans between them dropped).
     searched = {stamp_index[round(stamp, 3)] for stamp in localiser.searched_stamps}
     assert len(revisited & searched) >= 3
     assert len(closed & revisited) >= 0.5 * len(revisited & searched)
