@@ -41,7 +41,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -105,6 +105,13 @@ class _Candidate:
     linked: set[int] = field(default_factory=set)
 
 
+def _stacked(matches: "_Candidate | Iterable[_Candidate]") -> tuple[np.ndarray, np.ndarray]:
+    """(odometry, estimate) of one match, or of several stacked."""
+    if isinstance(matches, _Candidate):
+        return matches.odometry, matches.estimate
+    return (np.stack([m.odometry for m in matches]), np.stack([m.estimate for m in matches]))
+
+
 class OdometryConsistency:
     """Counts the candidates whose implied poses, carried along the odometry between them,
     agree (SearchParams.consistency_*): each new candidate with the earlier ones in the window,
@@ -150,19 +157,18 @@ class OdometryConsistency:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
         lies within the tolerances of the later one's (either side one match or several,
         broadcast), the two queries at least min_separation_m apart."""
-        def stacked(matches):
-            if isinstance(matches, _Candidate):
-                return matches.odometry, matches.estimate
-            return (np.stack([m.odometry for m in matches]),
-                    np.stack([m.estimate for m in matches]))
-        earlier_odometry, earlier_estimate = stacked(earlier)
-        later_odometry, later_estimate = stacked(later)
+        earlier_odometry, earlier_estimate = _stacked(earlier)
+        later_odometry, later_estimate = _stacked(later)
         separated = np.hypot(*(earlier_odometry[..., :2] - later_odometry[..., :2]).T) \
             >= min_separation_m
         predicted = compose_planar(earlier_estimate,
                                    relative_planar(earlier_odometry, later_odometry))
-        position_gap, yaw_gap_deg = planar_error(predicted, later_estimate)
-        return separated & (position_gap <= self.search.consistency_tolerance_m) \
+        return separated & self._within_tolerance(predicted, later_estimate)
+
+    def _within_tolerance(self, predicted: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+        """Whether each predicted pose lies within the consistency tolerances of estimate."""
+        position_gap, yaw_gap_deg = planar_error(predicted, estimate)
+        return (position_gap <= self.search.consistency_tolerance_m) \
             & (yaw_gap_deg <= self.search.consistency_tolerance_deg)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
@@ -216,15 +222,12 @@ class OdometryConsistency:
         where estimate does; else (0, 2)."""
         if not self._anchors:
             return np.zeros((0, 2))
-        odometry = np.asarray(odometry, dtype=np.float64)
-        match = _Candidate(odometry, np.asarray(estimate, dtype=np.float64), self.travelled_m,
-                           None, -1, False)
-        if self._agreeing(self._anchors, match, 0.0).any():
+        anchors_odometry, anchors_estimate = _stacked(self._anchors)
+        places = compose_planar(anchors_estimate, relative_planar(
+            anchors_odometry, np.asarray(odometry, dtype=np.float64)))
+        if self._within_tolerance(places, np.asarray(estimate, dtype=np.float64)).any():
             return np.zeros((0, 2))
-        anchors_odometry = np.stack([anchor.odometry for anchor in self._anchors])
-        anchors_estimate = np.stack([anchor.estimate for anchor in self._anchors])
-        return compose_planar(anchors_estimate,
-                              relative_planar(anchors_odometry, odometry))[:, :2]
+        return places[:, :2]
 
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
