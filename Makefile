@@ -43,10 +43,13 @@ $(STAMP): setup.py package.xml scripts/setup_env.sh
 demo: setup
 	$(VENV)/bin/mf-lpr demo $(if $(DATA),--data $(DATA),)
 
-# Lint first (pyflakes errors, syntax errors, lines over the project's 100 columns), then the tests.
+# Lint first (pyflakes errors, syntax errors, lines over the project's 100 columns), then the tests
+# in two processes, a test file's tests in one (module fixtures are built once): 12 min -> 8.5
+# on two cores. Each process talks DDS on a domain of its own (test/conftest.py).
+TEST_PROCESSES ?= 2
 test: setup torch baselines
 	$(VENV)/bin/ruff check mf_lpr_ros test benchmarks launch
-	$(VPY) -m pytest -q $(PYTEST_ARGS)
+	$(VPY) -m pytest -q -n $(TEST_PROCESSES) --dist loadfile $(PYTEST_ARGS)
 
 bench: setup
 	$(VPY) benchmarks/bench_search.py

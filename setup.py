@@ -21,7 +21,7 @@ setup(
                       "pillow", "open3d-cpu", "threadpoolctl"],
     extras_require={"gpu": ["torch"], "slam": ["gtsam"], "distributed": ["dask[distributed]"],
                     "baselines": ["map-closures"], "compressed_pcd": ["python-neo-lzf"],
-                    "test": ["pytest", "hypothesis", "ruff"]},
+                    "test": ["pytest", "pytest-xdist", "hypothesis", "ruff"]},
     zip_safe=True,
     maintainer="mf_lpr_ros developers",
     maintainer_email="mf-lpr-ros@example.org",

@@ -32,7 +32,7 @@ quiet() {
   return "$status"
 }
 quiet $pip install -q --upgrade pip
-quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest hypothesis ruff==0.17.6 open3d-cpu threadpoolctl
+quiet $pip install -q numpy scipy rosbags tqdm matplotlib pillow pyyaml pytest pytest-xdist hypothesis ruff==0.17.6 open3d-cpu threadpoolctl
 if ! "$venv/bin/python" -c "import rclpy, visualization_msgs.msg, diagnostic_msgs.msg, nav_msgs.msg, std_srvs.srv, lifecycle_msgs.msg" 2>/dev/null; then
   quiet $pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-sensor-msgs ros-jazzy-geometry-msgs \
     ros-jazzy-nav-msgs ros-jazzy-std-msgs ros-jazzy-visualization-msgs ros-jazzy-diagnostic-msgs \
@@ -47,6 +47,6 @@ quiet $pip install -q python-neo-lzf || echo "setup: python-neo-lzf not installe
 # Dask distributed: suite and build-map across processes or machines (--scheduler).
 quiet $pip install -q "dask[distributed]" || echo "setup: dask not installed; --scheduler will be unavailable"
 quiet $pip install -q --no-deps -e .
-"$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest" && [ -x "$venv/bin/ruff" ] \
+"$venv/bin/python" -c "import numpy, scipy, rosbags, yaml, PIL, pytest, xdist" && [ -x "$venv/bin/ruff" ] \
   || { echo "setup: the environment is incomplete" >&2; exit 1; }
 echo "setup: environment ready in $venv"

@@ -15,8 +15,19 @@ from mf_lpr_ros.sim.synthetic import make_world, route, scan_world
 
 REPO = Path(__file__).resolve().parents[1]
 
+
+def _ros_domain() -> int:
+    """A DDS domain for this test process (1-230, Fast DDS's UDP range): by the run's pid, and
+    under pytest-xdist (make test) one per worker of the run, so that two workers never share
+    one."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if not worker.startswith("gw"):
+        return 1 + os.getpid() % 100
+    return 1 + (os.getppid() % 23) * 10 + int(worker[2:]) % 10
+
+
 # Tests talk over real DDS: keep them on this host, on a domain of their own.
-os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+os.environ["ROS_DOMAIN_ID"] = str(_ros_domain())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
