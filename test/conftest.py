@@ -31,15 +31,37 @@ os.environ["ROS_DOMAIN_ID"] = str(_ros_domain())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
-def pytest_collection_modifyitems(items) -> None:
+# make test runs the suite in two phases (Makefile): "parallel", the tests not marked realtime,
+# in worker processes; then "realtime", those alone, as a loaded machine would drop what they
+# stream. Unset: every test.
+TEST_PHASES = ("parallel", "realtime")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
     """Mark what each test needs: ros for test/ros/ and the ROS graph fixture, real_data for
-    the real-data fixture (markers are registered in setup.cfg)."""
+    the real-data fixture (markers are registered in setup.cfg); keep the tests of
+    $MF_LPR_TEST_PHASE. The files holding a slow test run first: make test hands whole files
+    to its processes as each gets free, and a long file handed out last keeps one busy while
+    the other waits."""
     ros_folder = Path(__file__).parent / "ros"
     for item in items:
         if ros_folder in Path(item.fspath).parents or "ros_graph" in item.fixturenames:
             item.add_marker(pytest.mark.ros)
         if "data_dir" in item.fixturenames:
             item.add_marker(pytest.mark.real_data)
+    phase = os.environ.get("MF_LPR_TEST_PHASE", "")
+    if phase:
+        if phase not in TEST_PHASES:
+            raise pytest.UsageError(f"MF_LPR_TEST_PHASE must be one of {TEST_PHASES} or unset, "
+                                    f"got {phase!r}")
+        realtime = phase == "realtime"
+        kept = [item for item in items if bool(item.get_closest_marker("realtime")) == realtime]
+        if len(kept) < len(items):
+            kept_ids = {id(item) for item in kept}
+            config.hook.pytest_deselected(items=[i for i in items if id(i) not in kept_ids])
+            items[:] = kept
+    slow_files = {item.fspath for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.fspath not in slow_files)
 
 
 def data_root() -> Path | None:

@@ -136,6 +136,7 @@ def test_repeated_searches_of_a_large_map_do_not_grow_memory(rng):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_a_20_hz_stream_into_a_slow_localiser_stays_flat_and_fresh():
     """A short run of benchmarks/bench_soak.py (the 10-minute run is in the closing note)."""
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))

@@ -7,6 +7,7 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_reduced_demo_runs_end_to_end(tmp_path, capsys):
     """The three simulated worlds, every 5th scan, through map_builder and the localiser over
     DDS, day 2 replayed at twice the sensor's rate."""

@@ -42,6 +42,7 @@ def balm_bag(data_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_bag_through_map_builder_loop_closure_localiser_and_pose_graph(ros_graph, balm_bag,
                                                                        tmp_path):
     """One replay of the real bag into the three nodes at the defaults of the handheld preset:
@@ -169,6 +170,7 @@ def test_relocalise_the_second_half_against_a_map_of_the_first(ros_graph, balm_b
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_demo_on_a_real_bag_in_loop_closure_mode(balm_bag, tmp_path, capsys):
     from mf_lpr_ros.cli import main
 
