@@ -187,13 +187,15 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
                                          problem)
 
     to_describe = sorted(set(wanted_refs) | (wanted_queries if same_sequence else set()))
+    first_reference_problem = ""
     for scan in progress_bar(reference.iter_scans(to_describe), total=len(to_describe),
                              desc=f"{method.name}: describe", enabled=progress, unit="scan"):
         if scan.index in wanted_refs:
             try:
                 ref_descriptors[wanted_refs[scan.index]] = method.describe(scan, reference=True)
-            except InvalidCloudError:
-                pass                           # left out of the map (see the docstring)
+            except InvalidCloudError as error:
+                # Left out of the map (see the docstring).
+                first_reference_problem = first_reference_problem or str(error)
         if same_sequence and scan.index in wanted_queries:
             describe_query(scan)
     if not same_sequence:
@@ -205,7 +207,7 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     described = np.array([descriptor is not None for descriptor in ref_descriptors])
     if not described.any():
         raise InvalidCloudError(f"{reference.name}: none of the {len(described)} references "
-                                f"could be described")
+                                f"could be described; the first: {first_reference_problem}")
     # Positions in the map of the described references, and how many precede each selection
     # position (a query may match the first n_active of the selection).
     in_map = np.flatnonzero(described)

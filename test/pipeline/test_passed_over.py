@@ -120,7 +120,7 @@ def test_build_map_says_which_scans_it_passed_over(blanked, tmp_path, capsys):
     assert ReferenceMap.load(out).metadata[PASSED_OVER_KEY]["count"] == 3
 
 
-def test_a_source_with_nothing_to_describe_is_refused_by_name(world, tmp_path):
+def test_a_source_with_nothing_to_describe_is_refused_by_name(world, tmp_path, capsys):
     folder = tmp_path / "first"
     write_kitti_sequence(folder, world, route(6), seed=1)
     for index in range(6):
@@ -128,6 +128,10 @@ def test_a_source_with_nothing_to_describe_is_refused_by_name(world, tmp_path):
     with pytest.raises(InvalidCloudError, match=r"first: no reference could be described; 6 "
                                                 r"scan\(s\) .* the first: scan 0 \(stamp"):
         build_map(open_source(folder), preset("kitti"), progress=False)
+    assert main(["evaluate", "--reference", str(folder), "--preset", "kitti", "--tolerance",
+                 "5", "--exclude-recent-frames", "2", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert "none of the 6 references could be described; the first: scan 0 (stamp " in error
 
 
 def test_evaluate_passes_over_scans_with_nothing_to_describe(world, tmp_path, capsys):
