@@ -167,9 +167,9 @@ def test_a_request_searches_wider_where_the_candidate_stage_leaves_the_place_out
         ros_graph, synthetic_map):
     """A robot the candidate stage fails (here the prefilter ranks the map's places in reverse
     and one candidate is searched: a wrong place, and nothing to tell it from) gets nothing
-    published from its stream of scans, which are not searched again; a ~/relocalise call
-    searches its scans again over the wider list (search.prefilter_retry: always a request, here
-    every reference) and answers with the right pose."""
+    published from its stream of scans (no closure is confirmed, so under search.prefilter_retry
+    "revisits" none is searched again); a ~/relocalise call searches its scans again over the
+    wider list (a request always does; here every reference) and answers with the right pose."""
     path, queries = synthetic_map
     node = ros_graph.start(LocaliserNode, preset="kitti", map_path=str(path),
                            **{"search.prefilter_top_k": 1, "search.prefilter_expand_m": 0.0})
