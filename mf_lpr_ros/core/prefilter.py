@@ -4,7 +4,8 @@ Each low-resolution descriptor is reduced to its polar magnitude spectrum (Fouri
 without the log-radius): the 2-D FFT magnitude ignores where things are in the window, and
 resampled on (radius, angle) a rotation of the scan becomes a circular shift along the angle
 axis. Ranking a reference takes the best circular correlation of the two polar spectra over
-all angle shifts, computed for every reference at once in the angular-frequency domain.
+angle shifts every half bin, computed for every reference at once in the angular-frequency
+domain.
 
 This keeps the relative layout of the spectrum across radii (unlike per-ring magnitudes). The
 exact two-stage search then runs only on the best-ranked references (and their map neighbours,
@@ -28,6 +29,12 @@ _RADIAL_SUBSAMPLE_BINS = 0.5
 # scores over angles) stay in cache, so only the features stream from memory (3x faster
 # at 192k references than blocks of 65536).
 _SCORED_TOGETHER = 1 << 13
+# A reference is scored by its correlation's best over shifts this many times finer than the
+# angle bins. The features hold whole angular harmonics, so the correlation between two shifts
+# is the same trigonometric sum evaluated there: read at whole shifts alone, a query turned by
+# half a bin scores less than one turned by whole bins, and turned queries lose their place
+# from the candidates more often (docs/RESULTS.md, session 44).
+_SCORE_SHIFTS_PER_BIN = 2
 
 
 class PolarSpectrumIndex(NumpyArrays):
@@ -51,19 +58,8 @@ class PolarSpectrumIndex(NumpyArrays):
         # A disc, not the square: rotating the scene then only moves content inside it.
         self._disc = (np.hypot(x, y) <= image_size / 2).astype(np.float32)
         self._sampling = _polar_sampling(self.fft_size, n_radii, n_angles)
-        angles = np.arange(n_angles)
-        harmonics = np.arange(self.n_harmonics)
-        weight = np.full(self.n_harmonics, 2.0)
-        weight[0] = 1.0
-        if n_angles % 2 == 0:
-            weight[-1] = 1.0
-        phase = 2 * np.pi * harmonics[:, None] * angles[None, :] / n_angles
-        # Real inverse DFT as one matrix (angles, (harmonic, [Re, Im])): circular correlation
-        # over every angle shift.
-        inverse = np.stack([weight[:, None] * np.cos(phase), -weight[:, None] * np.sin(phase)],
-                           axis=1) / n_angles
-        self._inverse = np.ascontiguousarray(
-            inverse.reshape(2 * self.n_harmonics, n_angles).T, dtype=np.float32)
+        self._inverse = _circular_inverse(n_angles, 1)
+        self._score_inverse = _circular_inverse(n_angles, _SCORE_SHIFTS_PER_BIN)
         self._bank = self._new_bank(max(capacity, 1))
         self._count = 0
         self._last_image: np.ndarray | None = None
@@ -152,12 +148,13 @@ class PolarSpectrumIndex(NumpyArrays):
         return self._last_query
 
     def _best_over_angles(self, features, query):
-        return self._amax(self._over_angles(features, query), axis=0)
+        return self._amax(self._over_angles(features, query, self._score_inverse), axis=0)
 
-    def _over_angles(self, features, query):
-        """(n_angles, n) circular correlations of n references' features with the query's."""
+    def _over_angles(self, features, query, inverse=None):
+        """(shifts, n) circular correlations of n references' features with the query's, at
+        the shifts of inverse (default: the n_angles whole shifts)."""
         cross = (features @ query)[:, :, 0]
-        return self._product(self._inverse,
+        return self._product(self._inverse if inverse is None else inverse,
                              self._real_parts(cross).reshape(2 * self.n_harmonics, cross.shape[1]))
 
     def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
@@ -182,6 +179,23 @@ class PolarSpectrumIndex(NumpyArrays):
         k = min(k, len(scores))
         best = np.argpartition(-scores, k - 1)[:k]
         return best[np.argsort(-scores[best], kind="stable")]
+
+
+def _circular_inverse(n_angles: int, per_bin: int) -> np.ndarray:
+    """(n_angles x per_bin, (harmonic, [Re, Im])) float32: the real inverse DFT of a half
+    spectrum of n_angles samples as one matrix, evaluated every 1/per_bin of a shift, so that
+    one product gives the circular correlation at every such shift."""
+    n_harmonics = n_angles // 2 + 1
+    shifts = np.arange(n_angles * per_bin) / per_bin
+    weight = np.full(n_harmonics, 2.0)
+    weight[0] = 1.0
+    if n_angles % 2 == 0:
+        weight[-1] = 1.0
+    phase = 2 * np.pi * np.arange(n_harmonics)[:, None] * shifts[None, :] / n_angles
+    inverse = np.stack([weight[:, None] * np.cos(phase), -weight[:, None] * np.sin(phase)],
+                       axis=1) / n_angles
+    return np.ascontiguousarray(inverse.reshape(2 * n_harmonics, len(shifts)).T,
+                                dtype=np.float32)
 
 
 def _polar_sampling(fft_size: int, n_radii: int, n_angles: int

@@ -94,6 +94,27 @@ def test_the_prefilter_angle_falls_between_its_bins():
         assert abs((angle + turn_deg + 90.0) % 180.0 - 90.0) <= 1.0, turn_deg
 
 
+def test_a_view_turned_between_the_angle_bins_scores_as_one_turned_onto_them():
+    """Turned by half an angle bin (2.25 degrees) off the bins, a view of a place scores against
+    it about as well as turned onto a bin: the features' correlation is read between its whole
+    shifts too. Here the half-bin turns score 0.009 lower on average; read at whole shifts
+    alone, 0.018 lower (the worst 0.019 lower), and a turned revisit ranks below look-alikes
+    more often."""
+    rng = np.random.default_rng(6)
+    places = [blobs(rng, n_blobs=40) for _ in range(8)]
+    index = PolarSpectrumIndex(60)
+    index.append(np.stack([low(p) for p in places]))
+    bin_deg = 180.0 / index.n_angles
+    on_bins, between_bins = [], []
+    for place, turns in enumerate(rng.integers(1, 40, (len(places), 3))):
+        for turn in turns * bin_deg:
+            for scores, offset in ((on_bins, 0.0), (between_bins, bin_deg / 2)):
+                turned = rotate_occupancy(places[place], np.array([turn + offset]))[0]
+                scores.append(index.scores(low(turned))[place])
+    assert np.mean(on_bins) - np.mean(between_bins) <= 0.012
+    assert min(on_bins) - min(between_bins) <= 0.012
+
+
 def test_a_query_changed_in_place_is_scored_afresh():
     rng = np.random.default_rng(3)
     images = rng.random((6, 60, 60)).astype(np.float32)

@@ -125,6 +125,7 @@ class TorchPolarSpectrumIndex(TorchArrays, PolarSpectrumIndex):
         self.device = device or default_device()
         super().__init__(image_size, capacity=capacity)
         self._inverse = self._from_host(self._inverse)
+        self._score_inverse = self._from_host(self._score_inverse)
 
     def _new_bank(self, capacity: int) -> torch.Tensor:
         return torch.zeros((self.n_harmonics, capacity, self.n_radii), dtype=torch.complex64,
