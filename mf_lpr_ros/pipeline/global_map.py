@@ -30,6 +30,7 @@ count, time and size are reported.
 
 from __future__ import annotations
 
+import gc
 import math
 import multiprocessing
 import os
@@ -419,9 +420,18 @@ def _rendered(workers: int, count: int) -> Iterator[tuple[int, list[np.ndarray |
             yield from zip(task, _render_positions(task))
         return
     # fork: the workers share the tiled cloud's pages and the renderer without pickling them.
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        for task, views in zip(tasks, pool.map(_render_positions, tasks)):
-            yield from zip(task, views)
+    # What the parent holds is collected here and frozen (gc.freeze) for the workers' lifetime:
+    # a worker's garbage collector then never finalises an object of the parent's, such as one
+    # bound to a thread or a library state that fork did not copy (a worker crashed so, in a
+    # process that had run ROS and torch before), nor writes to its pages.
+    gc.collect()
+    gc.freeze()
+    try:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            for task, views in zip(tasks, pool.map(_render_positions, tasks)):
+                yield from zip(task, views)
+    finally:
+        gc.unfreeze()
 
 
 def _estimate(renderer: _Renderer, workers: int, site_bytes: int = 0) -> str:

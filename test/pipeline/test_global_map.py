@@ -1,7 +1,9 @@
 """Global point-cloud maps: accumulate, render references on a grid, relocalise off the path."""
 
 import csv
+import gc
 import json
+import os
 import re
 from dataclasses import replace
 
@@ -20,6 +22,7 @@ from mf_lpr_ros.datasets import open_source
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
+from mf_lpr_ros.pipeline import global_map
 from mf_lpr_ros.pipeline.global_cloud import TiledCloud, accumulate, read_global_cloud, write_pcd
 from mf_lpr_ros.pipeline.global_map import (
     RenderParams,
@@ -206,6 +209,54 @@ def test_rendering_workers_build_the_map_one_process_builds(town):
     assert len(lines) == 1
     assert f"rendering {len(alone)} positions x 1 headings: ~{len(alone)} references" in lines[0]
     assert "on 2 workers" in lines[0]
+
+
+class _FinalisedWhere:
+    """Appends the pid of the process that finalises it to a file: an object bound to the
+    state of the process that made it (a ROS context, a device handle) must not be finalised
+    in a forked copy of that process."""
+
+    def __init__(self, log_path):
+        self.log_path = log_path
+        self.cycle = self
+
+    def __del__(self):
+        with open(self.log_path, "a") as log:
+            log.write(f"{os.getpid()}\n")
+
+
+_RENDER_POSITIONS = global_map._render_positions
+
+
+def _collect_then_render(indices, renderer=None):
+    """A worker's task that runs a full garbage collection first, as a worker's collector may
+    at any allocation."""
+    gc.collect()
+    return _RENDER_POSITIONS(indices, renderer)
+
+
+def test_rendering_workers_never_finalise_what_the_building_process_left(town, tmp_path,
+                                                                         monkeypatch):
+    """The workers are forked: garbage the building process had not collected yet (cycles)
+    is finalised in that process before the fork, and a worker's collector never touches the
+    objects it inherits. Before, a worker's collector finalised such garbage in its copy of the
+    process, and in a test process that had run ROS and torch tests a worker crashed so."""
+    _, cloud = town
+    crop = cloud[(cloud[:, 0] > 20) & (cloud[:, 0] < 40)]
+    mapping = np.stack([_pose(x, 0.0, 0.0) for x in np.arange(24.0, 36.0, 2.0)])
+    log_path = tmp_path / "finalised.txt"
+    monkeypatch.setattr(global_map, "_render_positions", _collect_then_render)
+    # The collector paused, so that the garbage is still there when the workers fork.
+    gc.disable()
+    try:
+        for _ in range(20):
+            _FinalisedWhere(log_path)
+        build_global_map("town.pcd", CONFIG, trajectory=mapping, points=crop, render=SIM_RENDER,
+                         progress=False, workers=2)
+    finally:
+        gc.enable()
+    gc.collect()
+    assert log_path.read_text().split() == [str(os.getpid())] * 20
 
 
 def test_a_pickled_tiled_cloud_opens_the_same_file_and_names_it_when_it_is_gone(tmp_path):
