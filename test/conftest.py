@@ -55,10 +55,12 @@ def pytest_collection_modifyitems(config, items) -> None:
             raise pytest.UsageError(f"MF_LPR_TEST_PHASE must be one of {TEST_PHASES} or unset, "
                                     f"got {phase!r}")
         realtime = phase == "realtime"
-        kept = [item for item in items if bool(item.get_closest_marker("realtime")) == realtime]
-        if len(kept) < len(items):
-            kept_ids = {id(item) for item in kept}
-            config.hook.pytest_deselected(items=[i for i in items if id(i) not in kept_ids])
+        kept, deselected = [], []
+        for item in items:
+            (kept if bool(item.get_closest_marker("realtime")) == realtime
+             else deselected).append(item)
+        if deselected:
+            config.hook.pytest_deselected(items=deselected)
             items[:] = kept
     slow_files = {item.fspath for item in items if item.get_closest_marker("slow")}
     items.sort(key=lambda item: item.fspath not in slow_files)

@@ -150,11 +150,12 @@ class PolarSpectrumIndex(NumpyArrays):
     def _best_over_angles(self, features, query):
         return self._amax(self._over_angles(features, query, self._score_inverse), axis=0)
 
-    def _over_angles(self, features, query, inverse=None):
+    def _over_angles(self, features, query, inverse):
         """(shifts, n) circular correlations of n references' features with the query's, at
-        the shifts of inverse (default: the n_angles whole shifts)."""
+        the shifts of inverse (_inverse: the n_angles whole shifts; _score_inverse: every half
+        shift)."""
         cross = (features @ query)[:, :, 0]
-        return self._product(self._inverse if inverse is None else inverse,
+        return self._product(inverse,
                              self._real_parts(cross).reshape(2 * self.n_harmonics, cross.shape[1]))
 
     def angles(self, image: np.ndarray, references: np.ndarray) -> np.ndarray:
@@ -170,7 +171,7 @@ class PolarSpectrumIndex(NumpyArrays):
 
     def _angles_of(self, query, references: np.ndarray) -> np.ndarray:
         correlation = self._to_host(self._over_angles(self._bank[:, self._index(references)],
-                                                      query))
+                                                      query, self._inverse))
         return circular_peaks(correlation) * (180.0 / self.n_angles) % 180.0
 
     def top(self, image: np.ndarray, k: int, stop: int | None = None) -> np.ndarray:
