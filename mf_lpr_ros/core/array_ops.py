@@ -3,6 +3,8 @@
 SpectralBank and PolarSpectrumIndex do all their array work through these few methods (or
 through operators numpy and torch share: `@`, slicing, reshape), so the torch backend only
 overrides them (backends.torch_backend.TorchArrays) instead of copying the banks' methods.
+Also the weights of a half spectrum in its real inverse, which both banks' inverse matrices
+(the windowed correlation's and the prefilter's circular one) are built from.
 """
 
 from __future__ import annotations
@@ -73,3 +75,13 @@ class NumpyArrays:
     @staticmethod
     def _nbytes(array) -> int:
         return array.nbytes
+
+
+def half_spectrum_weights(length: int, n_freqs: int) -> np.ndarray:
+    """How often each frequency of a real signal's half spectrum counts in its inverse: twice,
+    but once for the mean and for the Nyquist frequency of an even length."""
+    weight = np.full(n_freqs, 2.0)
+    weight[0] = 1.0
+    if length % 2 == 0:
+        weight[-1] = 1.0
+    return weight

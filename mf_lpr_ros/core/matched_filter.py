@@ -20,7 +20,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
-from mf_lpr_ros.core.array_ops import NumpyArrays
+from mf_lpr_ros.core.array_ops import NumpyArrays, half_spectrum_weights
 from mf_lpr_ros.core.workers import Workers
 
 # Pairs correlated at once by _allowed_scores: their spectra stay in a core's cache from product
@@ -346,21 +346,11 @@ def _require_shift(max_shift: int) -> None:
         raise ValueError(f"max_shift must be >= 0, got {max_shift}")
 
 
-def _half_spectrum_weights(length: int, n_freqs: int) -> np.ndarray:
-    """How often each frequency of a real signal's half spectrum counts in its inverse: twice,
-    but once for the mean and for the Nyquist frequency of an even length."""
-    weight = np.full(n_freqs, 2.0)
-    weight[0] = 1.0
-    if length % 2 == 0:
-        weight[-1] = 1.0
-    return weight
-
-
 def _windowed_inverse_dft(length: int, n_freqs: int, max_shift: int) -> np.ndarray:
     """(2S+1, 2K) real matrix: interleaved [Re, Im] half-spectrum -> real signal at |dj| <= S."""
     shifts = np.arange(-max_shift, max_shift + 1)[:, None]
     freqs = np.arange(n_freqs)[None, :]
-    weight = _half_spectrum_weights(length, n_freqs)
+    weight = half_spectrum_weights(length, n_freqs)
     phase = 2 * np.pi * freqs * shifts / length
     inverse = np.empty((len(shifts), n_freqs, 2))
     inverse[:, :, 0] = weight * np.cos(phase) / length

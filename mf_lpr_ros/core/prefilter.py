@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from mf_lpr_ros.core.array_ops import NumpyArrays
+from mf_lpr_ros.core.array_ops import NumpyArrays, half_spectrum_weights
 from mf_lpr_ros.core.peak import circular_peaks
 from mf_lpr_ros.core.workers import Workers
 
@@ -188,10 +188,7 @@ def _circular_inverse(n_angles: int, per_bin: int) -> np.ndarray:
     one product gives the circular correlation at every such shift."""
     n_harmonics = n_angles // 2 + 1
     shifts = np.arange(n_angles * per_bin) / per_bin
-    weight = np.full(n_harmonics, 2.0)
-    weight[0] = 1.0
-    if n_angles % 2 == 0:
-        weight[-1] = 1.0
+    weight = half_spectrum_weights(n_angles, n_harmonics)
     phase = 2 * np.pi * np.arange(n_harmonics)[:, None] * shifts[None, :] / n_angles
     inverse = np.stack([weight[:, None] * np.cos(phase), -weight[:, None] * np.sin(phase)],
                        axis=1) / n_angles

@@ -68,9 +68,9 @@ def test_suite_on_a_cluster_equals_the_serial_run_even_when_a_worker_dies(cluste
     # dataset: two simulated sequences of two laps each (revisits, so closures are published
     # too). The whole test takes 35 s on them, 83 s on the two small real sets it used before.
     data_dir = tmp_path / "data"
-    for lap_offset_m, name in ((1.0, "loop_a"), (2.0, "loop_b")):
-        laps = np.concatenate([route(40), route(40, lateral_offset_m=lap_offset_m)])
-        write_kitti_sequence(data_dir / name, world, laps, seed=int(lap_offset_m))
+    for seed, name in enumerate(("loop_a", "loop_b")):
+        laps = np.concatenate([route(40), route(40, lateral_offset_m=1.0 + seed)])
+        write_kitti_sequence(data_dir / name, world, laps, seed=seed)
     second_lap = Protocol(5.0, exclude_recent_frames=30)
     suite = Suite("cluster-check", "two simulated sequences of two laps, three units",
                   (Rule("single", "kitti", second_lap, ("loop_a",)),
