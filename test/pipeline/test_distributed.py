@@ -65,8 +65,8 @@ def _pairs(out):
 def test_suite_on_a_cluster_equals_the_serial_run_even_when_a_worker_dies(cluster, world,
                                                                           tmp_path):
     # Three units spread over two workers with one of them killed is what this checks, not any
-    # dataset: two simulated sequences of two laps each (revisits, so closures are published
-    # too). The whole test takes 35 s on them, 83 s on the two small real sets it used before.
+    # dataset: two short simulated sequences of two laps each (revisits, so closures are
+    # published too) take well under half the time of the two small real sets.
     data_dir = tmp_path / "data"
     for seed, name in enumerate(("loop_a", "loop_b")):
         laps = np.concatenate([route(40), route(40, lateral_offset_m=1.0 + seed)])
