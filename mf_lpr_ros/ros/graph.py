@@ -10,6 +10,7 @@ from typing import Any, Callable
 
 import rclpy
 from rclpy.context import Context
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -32,6 +33,9 @@ class RosGraph:
         while self.context.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
+            except InvalidHandle:
+                # stop() destroyed a node this wait held: the next wait leaves it out.
+                continue
             except Exception:  # the context shut down mid-wait
                 if self.context.ok():
                     raise
