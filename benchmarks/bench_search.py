@@ -94,14 +94,21 @@ def max_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def median_query_ms(index: MatchedFilterIndex, queries: list[np.ndarray]) -> float:
+def median_query_ms(index: MatchedFilterIndex, queries: list[np.ndarray]
+                    ) -> tuple[float, tuple[float, float, float]]:
+    """The median query time, and the medians of its stages as the search times them
+    (MatchResult.timings_ms): the prefilter, the global stage after it, and the local stage
+    with the tests that follow it."""
     index.query(queries[0])
-    timings = []
+    timings, stages = [], []
     for query in queries:
         started = time.perf_counter()
-        index.query(query)
+        match = index.query(query)
         timings.append((time.perf_counter() - started) * 1e3)
-    return float(np.median(timings))
+        spent = match.timings_ms
+        stages.append((spent["prefilter"], spent["global"] - spent["prefilter"], spent["local"]))
+    prefilter, global_stage, local = np.median(np.array(stages), axis=0)
+    return float(np.median(timings)), (float(prefilter), float(global_stage), float(local))
 
 
 def scale_rows(sizes: list[int], n_queries: int, exact_up_to: int, tiled_up_to: int,
@@ -117,17 +124,18 @@ def scale_rows(sizes: list[int], n_queries: int, exact_up_to: int, tiled_up_to: 
         started = time.perf_counter()
         fast = MatchedFilterIndex(reference_map, fast_search)
         build_s = time.perf_counter() - started
-        fast_ms = median_query_ms(fast, queries)
+        fast_ms, fast_stages = median_query_ms(fast, queries)
         index_mb = fast.nbytes / 2 ** 20
         del fast
         exact_ms = tiled_ms = float("nan")
         if n_refs <= exact_up_to:
-            exact_ms = median_query_ms(MatchedFilterIndex(reference_map, exact_search), queries)
+            exact_ms, _ = median_query_ms(MatchedFilterIndex(reference_map, exact_search),
+                                          queries)
         if n_refs <= tiled_up_to:
             tiled_ms = tiled_grid_global(reference_map, queries[0],
                                          np.arange(0, 360, PAPER_ROTATION_STEP_DEG)) * 1e3
         rows.append((n_refs, build_s, index_mb, reference_map.occupancy_bits.nbytes / 2 ** 20,
-                     fast_ms, exact_ms, tiled_ms, max_rss_mb()))
+                     fast_ms, *fast_stages, exact_ms, tiled_ms, max_rss_mb()))
         del reference_map
     return rows
 
@@ -221,13 +229,15 @@ def main() -> None:
           f"{round(360 / PAPER_ROTATION_STEP_DEG)}), max_shift {search.max_shift_m} m at "
           f"{PARAMS.voxel_size} m voxels, "
           f"{args.queries} queries each (median), backend {args.backend}\n")
-    print_table(("refs", "index build s", "index MB", "map MB", "default ms", "exact ms",
-                 "tiled-grid global ms", "tiled-grid / default", "tiled-grid / exact",
-                 "peak RSS MB"),
-                [(n, build, index_mb, map_mb, fast, exact, tiled, f"{tiled / fast:.0f}x"
-                  if np.isfinite(tiled) else "-", f"{tiled / exact:.1f}x"
+    print_table(("refs", "index build s", "index MB", "map MB", "default ms",
+                 "of it: prefilter / global / local ms", "exact ms", "tiled-grid global ms",
+                 "tiled-grid / default", "tiled-grid / exact", "peak RSS MB"),
+                [(n, build, index_mb, map_mb, fast,
+                  f"{prefilter:.1f} / {global_stage:.1f} / {local:.1f}", exact, tiled,
+                  f"{tiled / fast:.0f}x" if np.isfinite(tiled) else "-", f"{tiled / exact:.1f}x"
                   if np.isfinite(tiled) and np.isfinite(exact) else "-", rss)
-                 for n, build, index_mb, map_mb, fast, exact, tiled, rss in rows])
+                 for n, build, index_mb, map_mb, fast, prefilter, global_stage, local, exact,
+                 tiled, rss in rows])
 
 
 if __name__ == "__main__":
