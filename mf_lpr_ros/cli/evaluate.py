@@ -212,7 +212,10 @@ def register(commands: argparse._SubParsersAction) -> None:
                     "positive queries matched to the same reference, and the tuning rule's "
                     "verdict: the suite's mean (recall@1, corrected recall@1, recall published "
                     "over every pair) rises, no recall drops by more than a point on any pair, "
-                    "no false closure is added.")
+                    "no false closure is added. Runs of `sensors`, which checks a change rather "
+                    "than choosing it, get that suite's verdict instead: no drop of more than a "
+                    "point, no false closure added, and auto within a point of default's "
+                    "recall@1 on every sensor; the mean need not rise.")
     diff.add_argument("before", help="the suite's output folder before the change")
     diff.add_argument("after", help="the suite's output folder after the change")
     diff.add_argument("--check", action="store_true",

@@ -8,6 +8,11 @@ passes: the rule lives here once, not in each session's arithmetic.
 The rule's figures: recall_at_1, recall_at_1_corrected and recall_published (the recalls, in
 points) and closures_false (a false loop closure bends a pose graph: none may be added).
 The suite's mean is the mean of the three recalls over every pair both runs hold.
+
+A suite that checks a change instead of choosing it (CHECK_SUITES: `sensors`, sensors the
+tuning suite does not hold, standing in for the sets we do not have) has its own verdict: no
+recall drops by more than a point, no false closure is added, and on every sensor `auto`
+stays within a point of `default`'s recall@1. Its mean need not rise.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ RULE_RECALLS = ("recall_at_1", "recall_at_1_corrected", "recall_published")
 ONE_POINT = 0.01
 TABLE_FIGURES = ("recall_at_1", "recall_at_1_corrected", "candidate_recall",
                  "closures_published", "closures_false", "recall_published")
+CHECK_SUITES = ("sensors",)
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,12 @@ class RunComparison:
     changes: list[PairChange]
     only_before: list[str] = field(default_factory=list)
     only_after: list[str] = field(default_factory=list)
+    suite: str | None = None
+
+    @property
+    def is_check(self) -> bool:
+        """Whether the runs are of a suite that checks a change (CHECK_SUITES)."""
+        return self.suite in CHECK_SUITES
 
     def mean(self, side: str) -> float:
         """The suite's mean: the rule's recalls averaged over every pair both runs hold."""
@@ -68,17 +80,41 @@ class RunComparison:
         return [(change.pair, -change.drop("closures_false")) for change in self.changes
                 if change.drop("closures_false") < 0]
 
+    def auto_below_default(self) -> list[tuple[str, float, float]]:
+        """(sensor, auto's recall@1, default's) after the change, wherever auto falls more
+        than a point below default on the same pair's sensor ("NAME [auto]" beside
+        "NAME [default]")."""
+        after = {(change.pair, change.method): change.after.get("recall_at_1", math.nan)
+                 for change in self.changes}
+        below = []
+        for (pair, method), auto in after.items():
+            if not pair.endswith(" [auto]"):
+                continue
+            sensor = pair[: -len(" [auto]")]
+            default = after.get((f"{sensor} [default]", method), math.nan)
+            if default - auto > ONE_POINT + 1e-9:
+                below.append((sensor, auto, default))
+        return below
+
     @property
     def passes(self) -> bool:
-        """The suite's mean rises, no recall drops by more than a point on any pair, no pair
-        gains a false closure, and both runs hold the same pairs."""
-        return (self.mean("after") > self.mean("before") and not self.drops_over_a_point()
-                and not self.false_closures_added() and not self.only_before
-                and not self.only_after)
+        """No recall drops by more than a point on any pair, no pair gains a false closure,
+        both runs hold the same pairs, and: the suite's mean rises (the tuning rule), or, for
+        a suite that checks a change, auto stays within a point of default on every sensor."""
+        shared = (not self.drops_over_a_point() and not self.false_closures_added()
+                  and not self.only_before and not self.only_after)
+        if self.is_check:
+            return shared and not self.auto_below_default()
+        return shared and self.mean("after") > self.mean("before")
 
 
 def compare_runs(before: Path, after: Path) -> RunComparison:
-    """The rule applied to two suite output folders (each holding results.json)."""
+    """The rule applied to two suite output folders (each holding results.json) of one
+    suite."""
+    suites = {_suite_name(Path(before)), _suite_name(Path(after))}
+    if len(suites) > 1:
+        raise DatasetError(f"{before} and {after} are runs of different suites "
+                           f"({' and '.join(sorted(map(str, suites)))}): compare two runs of one")
     rows_before, rows_after = _rows(Path(before)), _rows(Path(after))
     changes = []
     for key, row in rows_before.items():
@@ -94,7 +130,8 @@ def compare_runs(before: Path, after: Path) -> RunComparison:
                          only_before=[f"{p} ({m})" for p, m in rows_before if (p, m)
                                       not in rows_after],
                          only_after=[f"{p} ({m})" for p, m in rows_after if (p, m)
-                                     not in rows_before])
+                                     not in rows_before],
+                         suite=suites.pop())
 
 
 def format_comparison(comparison: RunComparison) -> str:
@@ -121,13 +158,23 @@ def format_comparison(comparison: RunComparison) -> str:
         lines.append(f"- {pair}: {figure} drops by {100 * drop:.1f} points")
     for pair, added in comparison.false_closures_added():
         lines.append(f"- {pair}: {added:.0f} false closure(s) added")
+    if comparison.is_check:
+        for sensor, auto, default in comparison.auto_below_default():
+            lines.append(f"- {sensor}: auto's recall_at_1 {auto:.3f} is more than a point "
+                         f"below default's {default:.3f}")
     for label, missing in (("only before", comparison.only_before),
                            ("only after", comparison.only_after)):
         if missing:
             lines.append(f"- pairs {label}: {', '.join(missing)}")
-    lines.append("passes the tuning rule" if comparison.passes else
-                 "does NOT pass the tuning rule (the mean must rise, no recall may drop by more "
-                 "than a point, no false closure may be added)")
+    if comparison.is_check:
+        lines.append(f"passes the {comparison.suite} check" if comparison.passes else
+                     f"does NOT pass the {comparison.suite} check (no recall may drop by more "
+                     "than a point, no false closure may be added, auto may not fall more than "
+                     "a point below default)")
+    else:
+        lines.append("passes the tuning rule" if comparison.passes else
+                     "does NOT pass the tuning rule (the mean must rise, no recall may drop by "
+                     "more than a point, no false closure may be added)")
     return "\n".join(lines)
 
 
@@ -145,6 +192,18 @@ def _rows(out: Path) -> dict[tuple[str, str], dict]:
     return {(row["pair"], row["method"]): row for row in rows
             if not str(row["pair"]).startswith("mean of")
             and math.isfinite(float(row.get("n_evaluated", math.nan)))}
+
+
+def _suite_name(out: Path) -> str | None:
+    """The suite a run's results.json names (None for a folder written without it)."""
+    path = out / "results.json"
+    try:
+        return json.loads(path.read_text()).get("suite")
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no results.json here; run `mf-lpr suite` into this "
+                           "folder first") from None
+    except (json.JSONDecodeError, AttributeError) as error:
+        raise DatasetError(f"{path}: not a suite's results.json ({error})") from None
 
 
 def _same_reference(before: Path, after: Path, pair: str, method: str) -> float:

@@ -16,7 +16,7 @@ METHOD = "MF-LPR (ours)"
 
 
 def _run(out: Path, figures: dict[str, tuple[float, float, float, int]],
-         matched: dict[str, list[int]] | None = None) -> Path:
+         matched: dict[str, list[int]] | None = None, suite: str | None = None) -> Path:
     """A suite output folder: per pair (recall@1, corrected, recall published, false closures)
     and, optionally, the references its queries matched (query k lies 1 m from a reference,
     except the last, 9 m away: not a positive at 5 m)."""
@@ -31,7 +31,7 @@ def _run(out: Path, figures: dict[str, tuple[float, float, float, int]],
     rows.append({"pair": f"mean of {len(rows)} pairs", "method": METHOD, "n_evaluated": 12,
                  "recall_at_1": 0.0})
     (out / "results.json").write_text(json.dumps({
-        "results": rows}))
+        "results": rows, **({"suite": suite} if suite else {})}))
     for pair, references in (matched or {}).items():
         records = [{"query_index": k, "stamp": float(k), "reference_index": reference,
                     "nearest_reference_m": 9.0 if k == len(references) - 1 else 1.0}
@@ -92,3 +92,39 @@ def test_the_command_checks_and_names_a_folder_that_is_not_a_run(tmp_path, capsy
         (tmp_path / "broken").mkdir()
         (tmp_path / "broken" / "results.json").write_text("{")
         compare_runs(before, tmp_path / "broken")
+
+
+SENSOR_RUN = {"town [auto]": (0.99, 0.99, 0.95, 0), "town [default]": (0.99, 0.99, 0.95, 0),
+              "forest [auto]": (0.985, 0.985, 0.9, 0), "forest [default]": (0.985, 0.985, 0.9, 0)}
+
+
+def test_a_check_suite_needs_no_rising_mean_but_auto_within_a_point_of_default(tmp_path):
+    before = _run(tmp_path / "before", SENSOR_RUN, suite="sensors")
+    unchanged = compare_runs(before, _run(tmp_path / "same", SENSOR_RUN, suite="sensors"))
+    assert unchanged.is_check and unchanged.passes
+    assert "passes the sensors check" in format_comparison(unchanged)
+    # The tuning suite's own rule asks for a rising mean.
+    assert not compare_runs(_run(tmp_path / "t1", SENSOR_RUN, suite="tuning"),
+                            _run(tmp_path / "t2", SENSOR_RUN, suite="tuning")).passes
+    # In the forest default rises and auto stays: half a point behind passes, 1.5 does not.
+    behind = compare_runs(before, _run(tmp_path / "behind", {
+        **SENSOR_RUN, "forest [default]": (0.99, 0.99, 0.9, 0)}, suite="sensors"))
+    assert behind.passes, "auto half a point below default is within a point"
+    below = compare_runs(before, _run(tmp_path / "below", {
+        **SENSOR_RUN, "forest [default]": (1.0, 1.0, 0.9, 0)}, suite="sensors"))
+    assert below.auto_below_default() == [("forest", 0.985, 1.0)]
+    assert not below.passes and not below.drops_over_a_point()
+    assert "- forest: auto's recall_at_1 0.985 is more than a point below default's 1.000" \
+        in format_comparison(below)
+
+
+def test_a_check_suite_fails_on_a_drop_and_runs_of_two_suites_are_refused(tmp_path):
+    before = _run(tmp_path / "before", SENSOR_RUN, suite="sensors")
+    dropped = compare_runs(before, _run(tmp_path / "dropped", {
+        **SENSOR_RUN, "town [default]": (0.99, 0.99, 0.90, 0)}, suite="sensors"))
+    assert not dropped.passes
+    table = format_comparison(dropped)
+    assert "town [default]: recall_published drops by 5.0 points" in table
+    assert "does NOT pass the sensors check" in table
+    with pytest.raises(DatasetError, match="different suites .sensors and tuning."):
+        compare_runs(before, _run(tmp_path / "tuning", SENSOR_RUN, suite="tuning"))
