@@ -111,11 +111,10 @@ class RunComparison:
 def compare_runs(before: Path, after: Path) -> RunComparison:
     """The rule applied to two suite output folders (each holding results.json) of one
     suite."""
-    suites = {_suite_name(Path(before)), _suite_name(Path(after))}
-    if len(suites) > 1:
+    (suite_before, rows_before), (suite_after, rows_after) = _run(Path(before)), _run(Path(after))
+    if suite_before != suite_after:
         raise DatasetError(f"{before} and {after} are runs of different suites "
-                           f"({' and '.join(sorted(map(str, suites)))}): compare two runs of one")
-    rows_before, rows_after = _rows(Path(before)), _rows(Path(after))
+                           f"({suite_before} and {suite_after}): compare two runs of one")
     changes = []
     for key, row in rows_before.items():
         if key not in rows_after:
@@ -131,7 +130,7 @@ def compare_runs(before: Path, after: Path) -> RunComparison:
                                       not in rows_after],
                          only_after=[f"{p} ({m})" for p, m in rows_after if (p, m)
                                      not in rows_before],
-                         suite=suites.pop())
+                         suite=suite_after)
 
 
 def format_comparison(comparison: RunComparison) -> str:
@@ -178,31 +177,21 @@ def format_comparison(comparison: RunComparison) -> str:
     return "\n".join(lines)
 
 
-def _rows(out: Path) -> dict[tuple[str, str], dict]:
-    """The per-pair rows of a suite's results.json, by (pair, method); left out: the means and
-    the papers' published figures printed beside them (no queries were evaluated for those)."""
+def _run(out: Path) -> tuple[str | None, dict[tuple[str, str], dict]]:
+    """A suite's results.json: the suite it names (None where it names none) and its per-pair
+    rows by (pair, method); left out: the means and the papers' published figures printed
+    beside them (no queries were evaluated for those)."""
     path = out / "results.json"
     try:
-        rows = json.loads(path.read_text())["results"]
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: no results.json here; run `mf-lpr suite` into this "
-                           "folder first") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as error:
-        raise DatasetError(f"{path}: not a suite's results.json ({error})") from None
-    return {(row["pair"], row["method"]): row for row in rows
+        saved = json.loads(path.read_text())
+        return saved.get("suite"), {
+            (row["pair"], row["method"]): row for row in saved["results"]
             if not str(row["pair"]).startswith("mean of")
             and math.isfinite(float(row.get("n_evaluated", math.nan)))}
-
-
-def _suite_name(out: Path) -> str | None:
-    """The suite a run's results.json names (None for a folder written without it)."""
-    path = out / "results.json"
-    try:
-        return json.loads(path.read_text()).get("suite")
     except FileNotFoundError:
         raise DatasetError(f"{path}: no results.json here; run `mf-lpr suite` into this "
                            "folder first") from None
-    except (json.JSONDecodeError, AttributeError) as error:
+    except (json.JSONDecodeError, AttributeError, KeyError, TypeError, ValueError) as error:
         raise DatasetError(f"{path}: not a suite's results.json ({error})") from None
 
 
