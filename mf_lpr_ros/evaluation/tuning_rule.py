@@ -165,15 +165,12 @@ def format_comparison(comparison: RunComparison) -> str:
                            ("only after", comparison.only_after)):
         if missing:
             lines.append(f"- pairs {label}: {', '.join(missing)}")
-    if comparison.is_check:
-        lines.append(f"passes the {comparison.suite} check" if comparison.passes else
-                     f"does NOT pass the {comparison.suite} check (no recall may drop by more "
-                     "than a point, no false closure may be added, auto may not fall more than "
-                     "a point below default)")
-    else:
-        lines.append("passes the tuning rule" if comparison.passes else
-                     "does NOT pass the tuning rule (the mean must rise, no recall may drop by "
-                     "more than a point, no false closure may be added)")
+    verdict, asks = ((f"the {comparison.suite} check", "auto may not fall more than a point "
+                      "below default") if comparison.is_check
+                     else ("the tuning rule", "the mean must rise"))
+    lines.append(f"passes {verdict}" if comparison.passes else
+                 f"does NOT pass {verdict} ({asks}, no recall may drop by more than a point, "
+                 "no false closure may be added)")
     return "\n".join(lines)
 
 
