@@ -31,11 +31,14 @@ from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.evaluation.methods import make_method
 from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
+from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.mapping import not_described
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 _STAMP_MATCH_S = 1e-4
+# The columns a thinned query of points loses whole: the default descriptor's voxel.
+THINNING_COLUMN_M = DescriptorParams().voxel_size
 
 
 @dataclass(frozen=True)
@@ -60,10 +63,17 @@ class Protocol:
     # relocalisation request, a weak match searched again over the prefilter's wider list
     # (SearchParams.prefilter_retry). False: as a loop-closure stream searches its scans.
     requests: bool = False
+    # Above 0, each query loses this fraction of its occupied cells before it is described
+    # (thinned_scan), the references none: a query that sees less of its place than the map
+    # did, as after a scene change or with a sparser sensor.
+    query_thinning: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.tolerance_m > 0:
             raise ValueError(f"protocol tolerance_m must be > 0, got {self.tolerance_m}")
+        if not 0.0 <= self.query_thinning < 1.0:
+            raise ValueError(f"protocol query_thinning must be in [0, 1), got "
+                             f"{self.query_thinning}")
         if self.query_every < 1:
             raise ValueError(f"protocol query_every must be >= 1, got {self.query_every}")
         for name in ("reference_frames", "query_frames"):
@@ -117,6 +127,24 @@ def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
     return Selection(references, queries[keep], n_active[keep])
 
 
+def thinned_scan(scan: Scan, fraction: float) -> Scan:
+    """scan with a fraction of its occupied cells emptied, the same ones every time for one
+    scan (drawn by a generator seeded with its index): of a density image, its occupied pixels;
+    of points, the points of whole THINNING_COLUMN_M columns, so that a cell of any descriptor
+    loses all its points or none of them at that size."""
+    rng = np.random.default_rng(scan.index)
+    if scan.density is not None:
+        density = scan.density.copy()
+        density[(density > 0) & (rng.random(density.shape) < fraction)] = 0
+        return replace(scan, density=density)
+    if scan.points is None or not len(scan.points):
+        return scan
+    columns = np.floor(np.nan_to_num(scan.points[:, :2]) / THINNING_COLUMN_M).astype(np.int64)
+    _, column_of_point = np.unique(columns, axis=0, return_inverse=True)
+    dropped = rng.random(int(column_of_point.max()) + 1) < fraction
+    return replace(scan, points=scan.points[~dropped[column_of_point.ravel()]])
+
+
 def _in_frames(count: int, frames: tuple[int, int] | None) -> np.ndarray:
     indices = np.arange(count)
     if frames is None:
@@ -155,8 +183,10 @@ class ProtocolRun:
 
 def run_protocol(method, reference: Sequence, selection: Selection, *,
                  query: Sequence | None = None, truth_poses: np.ndarray | None = None,
-                 progress: bool = True) -> ProtocolRun:
-    """One record per query (see summarise) for method under a selection.
+                 query_thinning: float = 0.0, progress: bool = True) -> ProtocolRun:
+    """One record per query (see summarise) for method under a selection, each query thinned
+    first when query_thinning > 0 (Protocol.query_thinning; a scan that is also a reference is
+    described whole as one).
 
     The method sees the sequences' poses (the map's poses, each query's odometry and the
     odometry its submaps are made with); truth_poses, the query sequence's ground truth (and the
@@ -178,6 +208,8 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
     query_descriptors: dict[int, tuple[Any, float, str]] = {}
 
     def describe_query(scan: Scan) -> None:
+        if query_thinning > 0:
+            scan = thinned_scan(scan, query_thinning)
         started = time.perf_counter()
         try:
             descriptor, problem = method.describe(scan, reference=False), ""
@@ -336,7 +368,8 @@ def evaluate_pair(reference: Sequence, config: Config, protocol: Protocol, *,
     if protocol.requests:
         config = replace(config, search=replace(config.search, prefilter_retry="every_query"))
     runner = make_method(method, config)
-    run = run_protocol(runner, reference, selection, query=query, progress=progress)
+    run = run_protocol(runner, reference, selection, query=query,
+                       query_thinning=protocol.query_thinning, progress=progress)
     summary = summarise(run.records, protocol.tolerance_m, len(selection.references),
                         poses_scored=headings_known)
     summary["references_not_described"] = len(run.references_left_out)

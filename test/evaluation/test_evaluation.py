@@ -8,11 +8,20 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.datasets import Sequence
+from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.evaluation import protocol as protocol_module
 from mf_lpr_ros.evaluation.benchmarks import SUITES
+from mf_lpr_ros.evaluation.methods import Retrieval
 from mf_lpr_ros.evaluation.metrics import POSE_FIGURES, QueryRecord, summarise
-from mf_lpr_ros.evaluation.protocol import Protocol, evaluate_pair, select
+from mf_lpr_ros.evaluation.protocol import (
+    Protocol,
+    ProtocolRun,
+    evaluate_pair,
+    run_protocol,
+    select,
+    thinned_scan,
+)
+from mf_lpr_ros.params import DescriptorParams
 
 
 class Line(Sequence):
@@ -289,3 +298,99 @@ def test_each_record_holds_the_nearest_place_its_candidate_stage_kept(tmp_path, 
     assert [r.searched_nearest_m for r in exact] == [r.nearest_reference_m for r in exact]
     assert all(r.searched_nearest_m >= r.nearest_reference_m for r in narrowed)
     assert any(r.searched_nearest_m > r.nearest_reference_m + 1.0 for r in narrowed)
+
+
+def test_thinning_empties_a_fraction_of_a_querys_cells_the_same_ones_every_time():
+    rng = np.random.default_rng(4)
+    density = np.where(rng.random((120, 120)) < 0.3, rng.integers(1, 10, (120, 120)), 0)
+    image = Scan(7, 0.0, None, density=density.astype(np.float32), density_pixel_m=0.4)
+    thinned = thinned_scan(image, 0.4)
+    occupied, kept = image.density > 0, thinned.density > 0
+    assert not (kept & ~occupied).any()
+    assert np.array_equal(thinned.density[kept], image.density[kept])
+    assert kept.sum() / occupied.sum() == pytest.approx(0.6, abs=0.03)
+    assert np.array_equal(thinned_scan(image, 0.4).density, thinned.density)
+    assert not np.array_equal(thinned_scan(replace(image, index=8), 0.4).density,
+                              thinned.density)
+    # Points lose whole columns, so a cell of the descriptor keeps all its points or none.
+    column = DescriptorParams().voxel_size
+    centres = (np.stack(np.meshgrid(np.arange(40), np.arange(40)), -1).reshape(-1, 2) + 0.5)
+    points = np.repeat(centres * column, 5, axis=0)
+    points += rng.uniform(-0.4, 0.4, points.shape) * column
+    cloud = Scan(3, 0.0, None, points=np.column_stack([points, rng.uniform(0, 3, len(points))]))
+    left = thinned_scan(cloud, 0.5).points
+    per_column = np.bincount(np.ravel_multi_index(
+        np.floor(left[:, :2] / column).astype(int).T, (40, 40)), minlength=1600)
+    assert set(per_column.tolist()) <= {0, 5}
+    assert np.count_nonzero(per_column) / 1600 == pytest.approx(0.5, abs=0.05)
+
+
+class _Images(Sequence):
+    """Density images along x, every scan a reference and a query."""
+
+    def __init__(self, n):
+        self.name = "images"
+        self.stamps = np.arange(n, dtype=float)
+        self.poses = np.tile(np.eye(4), (n, 1, 1))
+        self.poses[:, 0, 3] = np.arange(n) * 2.0
+        self._density = np.random.default_rng(1).integers(0, 2, (n, 60, 60)).astype(np.float32)
+
+    def _read(self, indices):
+        for index in indices:
+            yield self._scan(index, lambda: {"density": self._density[index].copy(),
+                                             "density_pixel_m": 0.4})
+
+
+class _Describer:
+    """A method that records what it was asked to describe, and matches nothing."""
+
+    name = "recorder"
+    submap_window = None
+
+    def __init__(self):
+        self.described = []
+
+    def describe(self, scan, reference):
+        self.described.append((scan.index, reference, int(np.count_nonzero(scan.density))))
+        return scan.index
+
+    def build(self, descriptors, poses, stamps):
+        pass
+
+    def pass_over(self, odometry):
+        pass
+
+    def query(self, descriptor, n_active, odometry):
+        return Retrieval(-1, np.zeros(3), 0.0, np.zeros(0, dtype=int), 0.0)
+
+
+def test_a_thinned_protocol_thins_its_queries_and_never_a_reference():
+    sequence = _Images(8)
+    whole = {index: int(np.count_nonzero(sequence._density[index])) for index in range(8)}
+    protocol = Protocol(3.0, exclude_recent_frames=2, query_thinning=0.5)
+    method = _Describer()
+    run = run_protocol(method, sequence, select(sequence, protocol, 0.0),
+                       query_thinning=protocol.query_thinning, progress=False)
+    assert isinstance(run, ProtocolRun) and len(run.records) == 5
+    references = [(index, cells) for index, reference, cells in method.described if reference]
+    queries = [(index, cells) for index, reference, cells in method.described if not reference]
+    assert references == [(index, whole[index]) for index in range(8)]
+    assert [index for index, _ in queries] == list(range(3, 8))
+    for index, cells in queries:
+        assert cells / whole[index] == pytest.approx(0.5, abs=0.06)
+    with pytest.raises(ValueError, match="query_thinning"):
+        Protocol(3.0, query_thinning=1.0)
+
+
+def test_evaluate_pair_thins_what_its_protocol_says(monkeypatch):
+    thinning = []
+    monkeypatch.setattr(protocol_module, "make_method", lambda name, config: _Describer())
+    monkeypatch.setattr(protocol_module, "run_protocol", lambda *args, query_thinning, **kw:
+                        thinning.append(query_thinning) or ProtocolRun([], []))
+    for fraction in (0.0, 0.5):
+        evaluate_pair(Line(10), preset("kitti"), Protocol(3.0, exclude_recent_frames=2,
+                                                          query_thinning=fraction))
+    assert thinning == [0.0, 0.5]
+    thinned = [rule for rule in SUITES["tuning"].rules if rule.protocol.query_thinning > 0]
+    assert [(rule.references, rule.label) for rule in thinned] == [
+        (("kitti_bev/00",), "thinned queries")]
