@@ -31,14 +31,14 @@ from mf_lpr_ros.datasets.base import nearest_keys
 from mf_lpr_ros.errors import InvalidCloudError
 from mf_lpr_ros.evaluation.methods import make_method
 from mf_lpr_ros.evaluation.metrics import RECALL_AT_N, QueryRecord, summarise
-from mf_lpr_ros.params import DescriptorParams
 from mf_lpr_ros.pipeline.mapping import not_described
 from mf_lpr_ros.pipeline.submaps import with_submaps
 from mf_lpr_ros.progress import progress_bar
 
 _STAMP_MATCH_S = 1e-4
-# The columns a thinned query of points loses whole: the default descriptor's voxel.
-THINNING_COLUMN_M = DescriptorParams().voxel_size
+# The world columns a thinned query loses whole (Protocol.query_thinning): about what a scene
+# change takes away at once, a parked car or a bush.
+THINNING_CELL_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -63,9 +63,9 @@ class Protocol:
     # relocalisation request, a weak match searched again over the prefilter's wider list
     # (SearchParams.prefilter_retry). False: as a loop-closure stream searches its scans.
     requests: bool = False
-    # Above 0, each query loses this fraction of its occupied cells before it is described
-    # (thinned_scan), the references none: a query that sees less of its place than the map
-    # did, as after a scene change or with a sparser sensor.
+    # Above 0, each query is described as if this fraction of the world's columns had gone
+    # since the map was made (thinned_scan), the references whole: a query that sees less of
+    # its place than the map did, as after a scene change.
     query_thinning: float = 0.0
 
     def __post_init__(self) -> None:
@@ -128,21 +128,43 @@ def select(reference: Sequence, protocol: Protocol, spacing_m: float, *,
 
 
 def thinned_scan(scan: Scan, fraction: float) -> Scan:
-    """scan with a fraction of its occupied cells emptied, the same ones every time for one
-    scan (drawn by a generator seeded with its index): of a density image, its occupied pixels;
-    of points, the points of whole THINNING_COLUMN_M columns, so that a cell of any descriptor
-    loses all its points or none of them at that size."""
-    rng = np.random.default_rng(scan.index)
+    """scan as if a fraction of the world's THINNING_CELL_M columns had gone since the map was
+    made: each occupied pixel of a density image, or each point, whose world position (by the
+    scan's pose) falls in a gone column is emptied. Which columns are gone is fixed in the
+    world, so consecutive queries lose the same things, as after a scene change, not each its
+    own, as a noisy sensor would."""
+    if scan.pose is None:
+        raise ValueError(f"scan {scan.index}: a query is thinned where the world has changed, "
+                         f"which needs its pose")
+    rotation, origin = scan.pose[:2, :2], scan.pose[:2, 3]
     if scan.density is not None:
+        rows, cols = scan.density.shape
+        # A pixel's centre from the sensor, which sits sensor_offset_m from the corner before
+        # pixel (rows // 2, cols // 2) (datasets.base.Scan).
+        y = (np.arange(rows) - rows // 2 + 0.5) * scan.density_pixel_m - scan.sensor_offset_m
+        x = (np.arange(cols) - cols // 2 + 0.5) * scan.density_pixel_m - scan.sensor_offset_m
+        local = np.stack(np.broadcast_arrays(x[None, :], y[:, None]), axis=-1).reshape(-1, 2)
+        gone = _gone_columns(local @ rotation.T + origin, fraction).reshape(rows, cols)
         density = scan.density.copy()
-        density[(density > 0) & (rng.random(density.shape) < fraction)] = 0
+        density[gone] = 0
         return replace(scan, density=density)
     if scan.points is None or not len(scan.points):
         return scan
-    columns = np.floor(np.nan_to_num(scan.points[:, :2]) / THINNING_COLUMN_M).astype(np.int64)
-    _, column_of_point = np.unique(columns, axis=0, return_inverse=True)
-    dropped = rng.random(int(column_of_point.max()) + 1) < fraction
-    return replace(scan, points=scan.points[~dropped[column_of_point.ravel()]])
+    world = np.nan_to_num(scan.points[:, :2]) @ rotation.T + origin
+    return replace(scan, points=scan.points[~_gone_columns(world, fraction)])
+
+
+def _gone_columns(world_xy: np.ndarray, fraction: float) -> np.ndarray:
+    """(N,) bool: the world positions (N, 2) whose THINNING_CELL_M column is among the gone
+    fraction, by a hash of the column (SplitMix64's finaliser): the same columns for every
+    scan."""
+    cells = np.floor(world_xy / THINNING_CELL_M).astype(np.int64)
+    key = (cells[:, 0] * np.int64(1_000_003) + cells[:, 1]).astype(np.uint64)
+    key = key + np.uint64(0x9E3779B97F4A7C15)
+    key = (key ^ (key >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    key = (key ^ (key >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    key = key ^ (key >> np.uint64(31))
+    return (key >> np.uint64(11)).astype(np.float64) / 2.0 ** 53 < fraction
 
 
 def _in_frames(count: int, frames: tuple[int, int] | None) -> np.ndarray:
