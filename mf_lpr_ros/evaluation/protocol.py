@@ -134,8 +134,8 @@ def thinned_scan(scan: Scan, fraction: float) -> Scan:
     world, so consecutive queries lose the same things, as after a scene change, not each its
     own, as a noisy sensor would."""
     if scan.pose is None:
-        raise ValueError(f"scan {scan.index}: a query is thinned where the world has changed, "
-                         f"which needs its pose")
+        raise ValueError(f"scan {scan.index} has no pose: thinning a query needs one, the "
+                         f"columns it loses being fixed in the world")
     rotation, origin = scan.pose[:2, :2], scan.pose[:2, 3]
     if scan.density is not None:
         rows, cols = scan.density.shape
