@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mf_lpr_ros.config import preset
+from mf_lpr_ros.core.pose import euler_pose
 from mf_lpr_ros.datasets import Scan, Sequence
 from mf_lpr_ros.evaluation import protocol as protocol_module
 from mf_lpr_ros.evaluation.benchmarks import SUITES
@@ -299,18 +300,12 @@ def test_each_record_holds_the_nearest_place_its_candidate_stage_kept(tmp_path, 
     assert any(r.searched_nearest_m > r.nearest_reference_m + 1.0 for r in narrowed)
 
 
-def _planar_pose(x, y, yaw):
-    pose = np.eye(4)
-    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    pose[:2, 3] = x, y
-    return pose
-
-
 def test_thinning_removes_the_same_world_columns_from_every_scan():
     rng = np.random.default_rng(4)
     cell = protocol_module.THINNING_CELL_M
     world = rng.uniform(-40, 40, (40000, 2))
-    poses = [_planar_pose(0.0, 0.0, 0.0), _planar_pose(3.7, -1.2, 0.6)]
+    poses = [euler_pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]),
+             euler_pose([3.7, -1.2, 0.0], [0.0, 0.0, 0.6])]
     kept_in_world = []
     for index, pose in enumerate(poses):
         local = (world - pose[:2, 3]) @ pose[:2, :2]
@@ -336,7 +331,7 @@ def test_a_thinned_density_image_loses_what_its_pixels_points_would():
     # corner before the central pixel) read as points must lose the same cells.
     rng = np.random.default_rng(5)
     density = np.where(rng.random((151, 151)) < 0.3, rng.integers(1, 10, (151, 151)), 0)
-    pose = _planar_pose(12.0, -30.0, 1.1)
+    pose = euler_pose([12.0, -30.0, 0.0], [0, 0, 1.1])
     image = Scan(2, 0.0, pose, density=density.astype(np.float32), density_pixel_m=0.4,
                  sensor_offset_m=0.2)
     thinned = thinned_scan(image, 0.4).density
