@@ -285,15 +285,19 @@ class SearchParams:
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
     consistency_vouch, consistency_vouch_window_m: a confirmed closure vouches for the matches
-        within consistency_vouch_window_m of it on the path that fail min_distinctiveness alone, or
-        consistency_min_support alone (a closure their own agreement helped confirm does not count),
-        and agree with it (as above, without the separation): they are published, on time or late.
-        Distinctiveness guards against a look-alike place, support against a one-off; a match that
-        lands where odometry and an independently confirmed closure put the query is neither. Only
-        confirmed candidates vouch, so agreement cannot creep along a road from one vouched match to
-        the next. A weak match (under min_confidence) is never vouched for: its pose is less
-        precise, and on held-out data a vouched weak match's pose lay 3 m off (core/verification.py;
-        docs/RESULTS.md, session 20). The vouch window is wider than the support window: a vouch
+        within consistency_vouch_window_m of it on the path that fail min_confidence or
+        min_distinctiveness (or both) and nothing else, or consistency_min_support alone (a
+        closure their own agreement helped confirm does not count), and agree with it (as above,
+        without the separation): they are published, on time or late. Confidence guards against
+        a query that sees too little of the place, distinctiveness against a look-alike place,
+        support against a one-off; a match that lands where odometry and an independently
+        confirmed closure put the query is none of these. Only confirmed candidates vouch, so
+        agreement cannot creep along a road from one vouched match to the next. A weak match
+        (under min_confidence) names the place but its weak peak places the query less
+        precisely, so it is published where the vouching closures, carried along the odometry,
+        put the query (their mean), its alignment to its reference moved to match: published at
+        its own pose, one lay 3.03 m off on held-out data (core/verification.py; docs/RESULTS.md,
+        sessions 20 and 51). The vouch window is wider than the support window: a vouch
         asks for one closure confirmed on distinct matches, not a run of candidates, and its reach
         is bounded by how far the odometry carries that closure's pose within the tolerance. At 1 %
         drift, 0.5 degrees per 100 m and a closure's own 0.2 m and 0.3-degree error, a right match

@@ -231,6 +231,14 @@ def relative_planar(origin: np.ndarray, target: np.ndarray) -> np.ndarray:
                      wrap_angle(target[..., 2] - origin[..., 2])], axis=-1)
 
 
+def mean_planar(poses: np.ndarray) -> np.ndarray:
+    """The mean of planar poses (n, 3): their positions' mean and their headings' circular
+    mean."""
+    poses = np.asarray(poses, dtype=np.float64)
+    heading = math.atan2(float(np.sin(poses[:, 2]).mean()), float(np.cos(poses[:, 2]).mean()))
+    return np.array([*poses[:, :2].mean(axis=0), heading])
+
+
 def reference_distance(first: np.ndarray, second: np.ndarray) -> float:
     """How far apart two references are, as one query's alignments on both put them: first and
     second are the query's planar pose in each reference's frame (shift x, shift y, rotation,

@@ -25,14 +25,18 @@ late as well as on time). So the first matches of a revisit are published too, o
 evidence as the ones after them.
 
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
-fail distinctiveness alone, or odometry consistency alone (a candidate that found too few
-agreeing ones): such a match is published when it agrees with a confirmed candidate within
-consistency_vouch_window_m of travel, earlier or later. Distinctiveness asks whether another
-place looks as alike, support whether the match repeats; once odometry and an independently
-confirmed closure put the query there, a match that lands within consistency_tolerance_m of
-where they predict is that place. Independently: a closure that a candidate's own agreement
-helped confirm does not vouch for it. Only confirmed candidates vouch, never a vouched match,
-so agreement cannot creep along a road from one vouched match to the next.
+fail confidence or distinctiveness (or both) and nothing else, or odometry consistency alone (a
+candidate that found too few agreeing ones): such a match is published when it agrees with a
+confirmed candidate within consistency_vouch_window_m of travel, earlier or later. Confidence
+asks how much of the query the reference explains, distinctiveness whether another place looks
+as alike, support whether the match repeats; once odometry and an independently confirmed
+closure put the query there, a match that lands within consistency_tolerance_m of where they
+predict is that place, however little of the place the query saw. A weak match (under
+min_confidence) is published where the vouching closures put the query, not where its own
+weak peak does: it names the place, they give the pose. Independently: a closure that a
+candidate's own agreement helped confirm does not vouch for it. Only confirmed candidates
+vouch, never a vouched match, so agreement cannot creep along a road from one vouched match to
+the next.
 """
 
 from __future__ import annotations
@@ -45,7 +49,13 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from mf_lpr_ros.core.pose import compose_planar, planar_error, relative_planar
+from mf_lpr_ros.core.pose import (
+    alignment_from_poses,
+    compose_planar,
+    mean_planar,
+    planar_error,
+    relative_planar,
+)
 from mf_lpr_ros.core.search import MatchResult, passes_confidence
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import SearchParams
@@ -54,7 +64,8 @@ from mf_lpr_ros.params import SearchParams
 @dataclass
 class Verdict:
     """Whether a match is published, why not, and what the tests measured. awaiting_vouch: it
-    failed distinctiveness alone, and a later confirmed closure may still vouch for it."""
+    failed only tests a confirmed closure outweighs (confidence, distinctiveness), and a later
+    one may still vouch for it."""
 
     accepted: bool
     reason: str
@@ -88,6 +99,9 @@ def published_late(verdict: Verdict, reason: str) -> Verdict:
 # bounds them while the robot moves; this bounds them when it stands still (30 m at 10 Hz and
 # 0.15 m/s).
 MATCHES_KEPT = 2000
+# Matches a caller keeps in case a later verdict confirms them (Verdict.may_be_confirmed): as
+# many as the verifier may still confirm, its candidates and the matches awaiting a vouch.
+MAY_BE_CONFIRMED_KEPT = 2 * MATCHES_KEPT
 
 
 @dataclass(eq=False)
@@ -103,6 +117,8 @@ class _Candidate:
     # candidates: links would keep every candidate of a long run alive).
     serial: int = -1
     linked: set[int] = field(default_factory=set)
+    # Called with the pose its vouchers put it at, when one vouches for it.
+    on_vouch: Callable[[np.ndarray], None] | None = None
 
 
 def _stacked(matches: "_Candidate | Iterable[_Candidate]") -> tuple[np.ndarray, np.ndarray]:
@@ -110,6 +126,23 @@ def _stacked(matches: "_Candidate | Iterable[_Candidate]") -> tuple[np.ndarray, 
     if isinstance(matches, _Candidate):
         return matches.odometry, matches.estimate
     return (np.stack([m.odometry for m in matches]), np.stack([m.estimate for m in matches]))
+
+
+def _carried(earlier, later) -> np.ndarray:
+    """Where each earlier match's estimate, carried along the odometry, puts the later query
+    (either side one match or several, broadcast)."""
+    earlier_odometry, earlier_estimate = _stacked(earlier)
+    later_odometry, _ = _stacked(later)
+    return compose_planar(earlier_estimate, relative_planar(earlier_odometry, later_odometry))
+
+
+def take_pose(match: MatchResult, pose: np.ndarray) -> None:
+    """Move match to pose (planar, map frame) in place, its reference kept: its alignment to
+    that reference follows (as ICP refinement moves it, core/refine.py)."""
+    reference_pose = compose_planar(
+        match.pose, relative_planar([*match.shift_m, match.rotation_rad], np.zeros(3)))
+    match.pose = np.asarray(pose, dtype=np.float64)
+    match.shift_m, match.rotation_rad = alignment_from_poses(reference_pose, match.pose)
 
 
 class OdometryConsistency:
@@ -157,13 +190,11 @@ class OdometryConsistency:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
         lies within the tolerances of the later one's (either side one match or several,
         broadcast), the two queries at least min_separation_m apart."""
-        earlier_odometry, earlier_estimate = _stacked(earlier)
+        earlier_odometry, _ = _stacked(earlier)
         later_odometry, later_estimate = _stacked(later)
         separated = np.hypot(*(earlier_odometry[..., :2] - later_odometry[..., :2]).T) \
             >= min_separation_m
-        predicted = compose_planar(earlier_estimate,
-                                   relative_planar(earlier_odometry, later_odometry))
-        return separated & self._within_tolerance(predicted, later_estimate)
+        return separated & self._within_tolerance(_carried(earlier, later), later_estimate)
 
     def _within_tolerance(self, predicted: np.ndarray, estimate: np.ndarray) -> np.ndarray:
         """Whether each predicted pose lies within the consistency tolerances of estimate."""
@@ -210,7 +241,7 @@ class OdometryConsistency:
                 confirmed.update(dict.fromkeys(self._vouch_from(anchor), VOUCHED))
             if not current.published:
                 # A closure confirmed without this candidate vouches for it, as for a match
-                # that fails distinctiveness alone; else it waits for one, as they do.
+                # that fails confidence or distinctiveness; else it waits for one, as they do.
                 vouched = current.published = self._vouched_now(current)
                 if not vouched:
                     self._awaiting_vouch.append(current)
@@ -240,22 +271,37 @@ class OdometryConsistency:
             if agrees and not match.published and match.serial not in anchor.linked:
                 match.published = True
                 vouched.append(match.key)
+                if match.on_vouch is not None:
+                    match.on_vouch(_carried(anchor, match))
         self._awaiting_vouch = deque((m for m in self._awaiting_vouch if not m.published),
                                      maxlen=MATCHES_KEPT)
         return vouched
 
     def _vouched_now(self, match: _Candidate) -> bool:
         """Whether a confirmed candidate in the vouch window agrees with match and was
-        confirmed without it (match did not count for it)."""
+        confirmed without it (match did not count for it); if so, match.on_vouch hears the
+        mean of the poses where those that agree put it."""
         anchors = [a for a in self._anchors if a.serial not in match.linked]
-        return bool(anchors) and bool(self._agreeing(anchors, match, 0.0).any())
+        if not anchors:
+            return False
+        agree = self._agreeing(anchors, match, 0.0)
+        if not agree.any():
+            return False
+        if match.on_vouch is not None:
+            match.on_vouch(mean_planar(_carried([a for a, agrees in zip(anchors, agree)
+                                                 if agrees], match)))
+        return True
 
-    def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None) -> bool:
+    def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,
+                on_vouch: Callable[[np.ndarray], None] | None = None) -> bool:
         """Whether a confirmed candidate in the vouch window agrees with this match; when none
-        does, it is kept in case a later confirmed candidate will."""
+        does, it is kept in case a later confirmed candidate will. on_vouch: called, now or
+        then, with the pose at which the vouching closures, carried along the odometry, put
+        the query (their mean)."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
-        match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False)
+        match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False,
+                           on_vouch=on_vouch)
         if self._vouched_now(match):
             return True
         self._awaiting_vouch.append(match)
@@ -323,14 +369,16 @@ class MatchVerifier:
             return Verdict(False, "no reference to search yet")
         search = self.search
         reasons = []
-        if not passes_confidence(match.confidence, match.place_similarity, search):
+        weak = not passes_confidence(match.confidence, match.place_similarity, search)
+        if weak:
             reasons.append(self._weak_reason(match))
-        if match.score < self.min_score:
+        # The caller's own floor: no closure vouches past it.
+        below_min_score = match.score < self.min_score
+        if below_min_score:
             reasons.append(f"score {match.score:.4g} < min_score {self.min_score}")
-        indistinct = not distinct(match, search)
-        if indistinct:
+        if not distinct(match, search):
             reasons.append(self._indistinct_reason(match))
-        a_vouch_may_save = (indistinct and len(reasons) == 1 and self.consistency_active
+        a_vouch_may_save = (bool(reasons) and not below_min_score and self.consistency_active
                             and search.consistency_vouch)
         if reasons and not a_vouch_may_save:
             return Verdict(False, "; ".join(reasons))
@@ -343,11 +391,14 @@ class MatchVerifier:
             if not fitness >= search.verify_fitness:
                 return Verdict(False, f"ICP fitness {fitness:.3f} < verify_fitness "
                                       f"{search.verify_fitness}", fitness)
-        if indistinct:
-            if self.consistency.vouched(odometry, match.pose, key):
+        if reasons:
+            # A weak peak places the query less precisely than the vouching closures do
+            # (docs/RESULTS.md, sessions 20 and 51): a weak match takes their pose.
+            on_vouch = (lambda pose: take_pose(match, pose)) if weak else None
+            if self.consistency.vouched(odometry, match.pose, key, on_vouch):
                 return Verdict(True, VOUCHED, fitness)
-            return Verdict(False, f"{self._indistinct_reason(match)}; {AWAITING_VOUCH}",
-                           fitness, awaiting_vouch=True)
+            return Verdict(False, f"{'; '.join(reasons)}; {AWAITING_VOUCH}", fitness,
+                           awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
         support, confirms, vouched = self.consistency.support(odometry, match.pose, key)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,9 +22,9 @@ from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import planar, wrap_angle
 from mf_lpr_ros.core.references import DescribedScan, add_references
 from mf_lpr_ros.core.refine import refine_match
-from mf_lpr_ros.core.search import MatchedFilterIndex
+from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import SubmapWindow
-from mf_lpr_ros.core.verification import MatchVerifier
+from mf_lpr_ros.core.verification import MAY_BE_CONFIRMED_KEPT, MatchVerifier
 from mf_lpr_ros.datasets import Scan
 from mf_lpr_ros.evaluation.scan_context import ScanContextIndex
 from mf_lpr_ros.optional import require
@@ -35,8 +36,9 @@ class Retrieval:
     """A method's answer for one query: the reference (position in the reference list, -1 for
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
-    (their order among this method's queries) it would now publish, confirmed late, and the
-    reason it publishes each for;
+    (their order among this method's queries) it would now publish, confirmed late, each with
+    the reason it is published for and the pose it is published at (a weak match vouched for
+    takes the pose of the closure that vouches, core/verification.py);
     distinctiveness, place_similarity and reason: see QueryRecord; searched: the references
     its candidate stage kept for the full comparison (None: the method does not say)."""
 
@@ -47,7 +49,7 @@ class Retrieval:
     ms_global: float
     ms_local: float = 0.0
     published: bool = False
-    confirms: dict[int, str] = field(default_factory=dict)
+    confirms: dict[int, tuple[str, np.ndarray]] = field(default_factory=dict)
     distinctiveness: float = math.nan
     local_distinctiveness: float = math.nan
     reason: str = ""
@@ -69,6 +71,9 @@ class MatchedFilterMethod:
         # Made with the index: verification state (odometry consistency) belongs to one run.
         self._verifier: MatchVerifier | None = None
         self._queries = 0
+        # The matches a later verdict may still confirm, by query order: a vouch moves a weak
+        # one to the vouching closure's pose.
+        self._may_be_confirmed: OrderedDict[int, MatchResult] = OrderedDict()
 
     def describe(self, scan: Scan, *, reference: bool) -> DescribedScan:
         keep_cloud = self.config.search.verify_fitness > 0 and scan.points is not None
@@ -82,6 +87,7 @@ class MatchedFilterMethod:
         self._verifier = MatchVerifier(self.config.search,
                                        submap_m=self.config.descriptor.submap_m)
         self._queries = 0
+        self._may_be_confirmed.clear()
 
     def pass_over(self, odometry: np.ndarray) -> None:
         """A query that could not be searched: the verifier still travels with its odometry,
@@ -99,10 +105,16 @@ class MatchedFilterMethod:
             def geometric(found):
                 return refine_match(found, descriptor.cloud, self._index.map).fitness
         verdict = self._verifier.verify(match, odometry, geometric, key=self._queries)
+        if verdict.may_be_confirmed:
+            self._may_be_confirmed[self._queries] = match
+            while len(self._may_be_confirmed) > MAY_BE_CONFIRMED_KEPT:
+                self._may_be_confirmed.popitem(last=False)
         self._queries += 1
+        confirms = {earlier: (reason, self._may_be_confirmed.pop(earlier).pose)
+                    for earlier, reason in verdict.confirms.items()}
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
-                         verdict.confirms, match.distinctiveness, match.local_distinctiveness,
+                         confirms, match.distinctiveness, match.local_distinctiveness,
                          verdict.reason,
                          np.arange(n_active) if match.searched is None else match.searched,
                          match.place_similarity)

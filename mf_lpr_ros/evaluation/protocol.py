@@ -318,10 +318,12 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             searched_nearest_m=_nearest_of(
                 distances, None if retrieval.searched is None else in_map[retrieval.searched]),
             place_similarity=float(retrieval.place_similarity)))
-        for earlier, reason in retrieval.confirms.items():
+        for earlier, (reason, pose) in retrieval.confirms.items():
             confirmed = records[searched_records[earlier]]
             confirmed.published = True
             confirmed.reason = reason
+            confirmed.estimate = np.asarray(pose, dtype=float).tolist()
+            confirmed.rte_m, confirmed.rre_deg = planar_error(pose, confirmed.truth)
     return ProtocolRun(records, selection.references[~described].tolist())
 
 

@@ -17,15 +17,13 @@ from mf_lpr_ros.core.references import describe_observation, descriptor_points
 from mf_lpr_ros.core.refine import refine_match
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.submap import Submap, SubmapWindow
-from mf_lpr_ros.core.verification import MATCHES_KEPT, MatchVerifier
+from mf_lpr_ros.core.verification import MAY_BE_CONFIRMED_KEPT, MatchVerifier
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError
 from mf_lpr_ros.live.map_builder import MapBuilder
 from mf_lpr_ros.live.pose_buffer import PairedScan
 from mf_lpr_ros.optional import require
 from mf_lpr_ros.params import SearchParams
 
-# As many as the verifier may still confirm: its candidates and the matches awaiting a vouch.
-_UNCONFIRMED_KEPT = 2 * MATCHES_KEPT
 # Appended to LiveMatch.described_from for a scan a levelling map had no pose to level.
 UNLEVELLED = ", not levelled (no pose)"
 
@@ -33,7 +31,8 @@ UNLEVELLED = ", not levelled (no pose)"
 @dataclass
 class LiveMatch:
     """One localisation attempt on a live scan. confirms: earlier attempts whose matches this
-    one's agreement confirmed (now accepted; publish their closures late)."""
+    one's agreement confirmed (now accepted; publish their closures late; a weak match a
+    closure vouched for has been moved to where that closure puts it)."""
 
     stamp: float
     match: MatchResult | None
@@ -182,7 +181,7 @@ class Localiser:
         result.confirms = self._confirmed(verdict.confirms)
         if verdict.may_be_confirmed:
             self._unconfirmed[stamp] = result
-            while len(self._unconfirmed) > _UNCONFIRMED_KEPT:
+            while len(self._unconfirmed) > MAY_BE_CONFIRMED_KEPT:
                 self._unconfirmed.popitem(last=False)
         return result
 

@@ -9,7 +9,7 @@ import pytest
 
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import compose_planar
+from mf_lpr_ros.core.pose import compose_planar, mean_planar, planar_error, relative_planar
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.verification import (
     AWAITING_VOUCH,
@@ -297,17 +297,56 @@ def test_a_confirmed_closure_vouches_for_agreeing_indistinct_matches_on_time_and
 
 
 @pytest.mark.parametrize("doubt", ["weak", "weak and indistinct"])
-def test_a_weak_match_is_never_vouched_for(doubt):
-    """Under min_confidence a match's pose is less precise (on held-out data a vouched weak
-    match lay 3 m off): agreeing with the revisit, on time or before it is confirmed, it still
-    stays unpublished, and its reason says why."""
-    right = np.array([0.3, 0.2, 0.02])
-    verdicts = _revisit({1: right, 8: right}, doubt=doubt)
-    assert verdicts[3].accepted and not verdicts[8].accepted
+def test_a_confirmed_closure_vouches_for_agreeing_weak_matches_as_for_indistinct_ones(doubt):
+    """Under min_confidence (the query saw little of the place), alone or with an indistinct
+    place: 1 waits and is vouched for late, 8 on time, while 9, as weak but 15 m from where
+    the revisit puts it, is never published. A weak match is no candidate: it supports no one."""
+    right, wrong = np.array([0.3, 0.2, 0.02]), np.array([15.0, 4.0, 0.5])
+    verdicts = _revisit({1: right, 8: right, 9: wrong}, doubt=doubt)
+    assert verdicts[1].reason.startswith("confidence 0.200 < min_confidence")
+    assert verdicts[1].reason.endswith(AWAITING_VOUCH) and verdicts[1].may_be_confirmed
+    assert verdicts[3].confirms == {0: CONFIRMED_LATER, 1: VOUCHED, 2: CONFIRMED_LATER}
+    assert verdicts[8].accepted and verdicts[8].reason == VOUCHED and not verdicts[8].candidate
+    assert verdicts[10].support == verdicts[7].support + 1
+    assert not verdicts[9].accepted and all(9 not in v.confirms for v in verdicts)
+    assert ("distinctiveness" in verdicts[9].reason) is (doubt == "weak and indistinct")
+
+
+def test_a_vouched_weak_match_takes_the_pose_where_the_closures_that_vouch_put_it():
+    """A weak peak places the query less precisely than confirmed closures do. Weak matches 1
+    (vouched for late) and 8 (on time) lie 0.9 m off and move to where the vouching closures,
+    carried along the odometry, put the query: late, one of the closures confirmed then; on
+    time, the mean over the agreeing ones. The alignment to the reference follows the pose. An
+    indistinct but confident match (9) keeps its own pose."""
+    verifier = MatchVerifier(SearchParams(consistency_min_support=2))
+    odometry = _drive(12)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    off = np.array([0.9, -0.6, 0.03])
+    doubts = {1: "weak", 8: "weak", 9: "indistinct"}
+    matches, verdicts = [], []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        estimate = pose + (off if index in doubts else [0.2, -0.1, 0.01])
+        reference_pose = pose + [3.0, 1.0, 0.2]
+        match = _match(estimate, **DOUBTS.get(doubts.get(index), {}))
+        relative = relative_planar(reference_pose, estimate)
+        match.shift_m, match.rotation_rad = relative[:2], float(relative[2])
+        matches.append(match)
+        verdicts.append(verifier.verify(match, odo, key=index))
+
+    def carried(anchors, index):
+        return compose_planar(np.stack([truth[a] + [0.2, -0.1, 0.01] for a in anchors]),
+                              relative_planar(odometry[anchors], odometry[index]))
+
+    assert 1 in verdicts[3].confirms and verdicts[8].reason == VOUCHED
+    assert any(np.allclose(matches[1].pose, pose) for pose in carried([0, 2, 3], 1))
+    assert np.allclose(matches[8].pose, mean_planar(carried([0, 2, 3, 4, 5, 6, 7], 8)))
     for index in (1, 8):
-        assert not verdicts[index].may_be_confirmed
-        assert verdicts[index].reason.startswith("confidence 0.200 < min_confidence")
-        assert all(index not in v.confirms for v in verdicts)
+        assert planar_error(matches[index].pose, truth[index])[0] < 0.3
+        reference_pose = truth[index] + [3.0, 1.0, 0.2]
+        assert np.allclose(compose_planar(reference_pose, [*matches[index].shift_m,
+                                                           matches[index].rotation_rad]),
+                           matches[index].pose)
+    assert verdicts[9].reason == VOUCHED and np.allclose(matches[9].pose, truth[9] + off)
 
 
 def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches():
@@ -336,11 +375,12 @@ def test_a_vouched_match_vouches_for_no_other():
     assert all(7 not in v.confirms for v in verdicts)
 
 
+@pytest.mark.parametrize("doubt", ["indistinct", "weak"])
 @pytest.mark.parametrize("change", ["vouch off", "min_score", "icp", "window"])
-def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window(change):
-    """A right but indistinct match 9 m after a confirmed revisit is vouched for unless one of
-    these changes: the setting off, a score under the caller's min_score, an ICP fitness under
-    verify_fitness, or a travel window shorter than the 9 m (it then waits)."""
+def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window(change, doubt):
+    """A right but indistinct or weak match 9 m after a confirmed revisit is vouched for
+    unless one of these changes: the setting off, a score under the caller's min_score, an ICP
+    fitness under verify_fitness, or a travel window shorter than the 9 m (it then waits)."""
     def verdict_after_a_confirmed_revisit(change: str):
         search = SearchParams(consistency_min_support=2, consistency_vouch=change != "vouch off",
                               consistency_vouch_window_m=6.0 if change == "window" else 30.0,
@@ -350,19 +390,20 @@ def test_a_vouch_needs_the_setting_min_score_icp_and_a_closure_within_the_window
         truth = compose_planar(MAP_T_ODOM, odometry)
 
         def fitness(match):
-            return 0.5 if change == "icp" and match.distinctiveness < 0.15 else 0.9
+            return 0.5 if change == "icp" and match.score < 3.0 else 0.9
         for odo, pose in zip(odometry[:4], truth[:4]):
             assert not verifier.verify(_match(pose + [0.2, -0.1, 0.01], score=3.0), odo,
                                        fitness).reason.startswith(("score", "ICP"))
         for odo in odometry[4:10]:                     # 9 m travelled without a match
             verifier.verify(None, odo)
-        return verifier.verify(_match(truth[10] + [0.3, 0.2, 0.02], **DOUBTS["indistinct"]),
+        return verifier.verify(_match(truth[10] + [0.3, 0.2, 0.02], **DOUBTS[doubt]),
                                odometry[10], fitness)
 
     assert verdict_after_a_confirmed_revisit("none").accepted
     verdict = verdict_after_a_confirmed_revisit(change)
     assert not verdict.accepted and verdict.may_be_confirmed is (change == "window")
-    expected = {"vouch off": "distinctiveness", "min_score": "min_score", "icp": "ICP fitness",
+    failed = "distinctiveness" if doubt == "indistinct" else "min_confidence"
+    expected = {"vouch off": failed, "min_score": "min_score", "icp": "ICP fitness",
                 "window": AWAITING_VOUCH}[change]
     assert expected in verdict.reason
 

@@ -415,3 +415,32 @@ def test_evaluate_pair_thins_what_its_protocol_says(monkeypatch):
     thinned = [rule for rule in SUITES["tuning"].rules if rule.protocol.query_thinning > 0]
     assert [(rule.references, rule.label) for rule in thinned] == [
         (("kitti_bev/00",), "thinned queries")]
+
+
+class _LateVoucher(_Describer):
+    """Matches every query to the first reference 5 m off its truth; the third query's
+    verdict publishes the first late, at the first query's true pose (a vouch that moves a
+    weak match)."""
+
+    name = "late voucher"
+
+    def __init__(self):
+        super().__init__()
+        self.odometry = []
+
+    def query(self, descriptor, n_active, odometry):
+        self.odometry.append(np.asarray(odometry, dtype=float))
+        confirms = {0: ("accepted: vouched", self.odometry[0])} if len(self.odometry) == 3 else {}
+        return Retrieval(0, self.odometry[-1] + [5.0, 0.0, 0.0], 0.3, np.zeros(1, dtype=int),
+                         0.0, confirms=confirms)
+
+
+def test_a_match_published_late_is_recorded_at_the_pose_it_is_published_at():
+    sequence = _Images(8)
+    run = run_protocol(_LateVoucher(), sequence,
+                       select(sequence, Protocol(3.0, exclude_recent_frames=2), 0.0),
+                       progress=False)
+    first, second = run.records[:2]
+    assert first.published and first.reason == "accepted: vouched"
+    assert first.estimate == pytest.approx(first.truth) and first.rte_m == pytest.approx(0.0)
+    assert not second.published and second.rte_m == pytest.approx(5.0)
