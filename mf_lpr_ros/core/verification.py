@@ -128,12 +128,17 @@ def _stacked(matches: "_Candidate | Iterable[_Candidate]") -> tuple[np.ndarray, 
     return (np.stack([m.odometry for m in matches]), np.stack([m.estimate for m in matches]))
 
 
+def _carry(estimate: np.ndarray, odometry: np.ndarray, to_odometry: np.ndarray) -> np.ndarray:
+    """Where a match's estimate (planar, map frame), carried along the odometry from its
+    query's odometry pose to another query's, puts that query (either side one or several
+    poses, broadcast)."""
+    return compose_planar(estimate, relative_planar(odometry, to_odometry))
+
+
 def _carried(earlier, later) -> np.ndarray:
-    """Where each earlier match's estimate, carried along the odometry, puts the later query
-    (either side one match or several, broadcast)."""
+    """_carry from earlier matches to later ones (either side one match or several)."""
     earlier_odometry, earlier_estimate = _stacked(earlier)
-    later_odometry, _ = _stacked(later)
-    return compose_planar(earlier_estimate, relative_planar(earlier_odometry, later_odometry))
+    return _carry(earlier_estimate, earlier_odometry, _stacked(later)[0])
 
 
 def take_pose(match: MatchResult, pose: np.ndarray) -> None:
@@ -190,11 +195,12 @@ class OdometryConsistency:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
         lies within the tolerances of the later one's (either side one match or several,
         broadcast), the two queries at least min_separation_m apart."""
-        earlier_odometry, _ = _stacked(earlier)
+        earlier_odometry, earlier_estimate = _stacked(earlier)
         later_odometry, later_estimate = _stacked(later)
         separated = np.hypot(*(earlier_odometry[..., :2] - later_odometry[..., :2]).T) \
             >= min_separation_m
-        return separated & self._within_tolerance(_carried(earlier, later), later_estimate)
+        predicted = _carry(earlier_estimate, earlier_odometry, later_odometry)
+        return separated & self._within_tolerance(predicted, later_estimate)
 
     def _within_tolerance(self, predicted: np.ndarray, estimate: np.ndarray) -> np.ndarray:
         """Whether each predicted pose lies within the consistency tolerances of estimate."""
@@ -254,8 +260,7 @@ class OdometryConsistency:
         if not self._anchors:
             return np.zeros((0, 2))
         anchors_odometry, anchors_estimate = _stacked(self._anchors)
-        places = compose_planar(anchors_estimate, relative_planar(
-            anchors_odometry, np.asarray(odometry, dtype=np.float64)))
+        places = _carry(anchors_estimate, anchors_odometry, np.asarray(odometry, dtype=np.float64))
         if self._within_tolerance(places, np.asarray(estimate, dtype=np.float64)).any():
             return np.zeros((0, 2))
         return places[:, :2]
@@ -265,14 +270,16 @@ class OdometryConsistency:
         (they are published and forgotten)."""
         if not self._awaiting_vouch:
             return []
-        agree = self._agreeing(anchor, self._awaiting_vouch, 0.0)
+        # A vouch needs no separation (class doc): agreement is the tolerance alone.
+        places = _carried(anchor, self._awaiting_vouch)
+        agree = self._within_tolerance(places, _stacked(self._awaiting_vouch)[1])
         vouched = []
-        for match, agrees in zip(self._awaiting_vouch, agree):
+        for match, agrees, place in zip(self._awaiting_vouch, agree, places):
             if agrees and not match.published and match.serial not in anchor.linked:
                 match.published = True
                 vouched.append(match.key)
                 if match.on_vouch is not None:
-                    match.on_vouch(_carried(anchor, match))
+                    match.on_vouch(place)
         self._awaiting_vouch = deque((m for m in self._awaiting_vouch if not m.published),
                                      maxlen=MATCHES_KEPT)
         return vouched
@@ -284,12 +291,12 @@ class OdometryConsistency:
         anchors = [a for a in self._anchors if a.serial not in match.linked]
         if not anchors:
             return False
-        agree = self._agreeing(anchors, match, 0.0)
+        places = _carried(anchors, match)
+        agree = self._within_tolerance(places, match.estimate)
         if not agree.any():
             return False
         if match.on_vouch is not None:
-            match.on_vouch(mean_planar(_carried([a for a, agrees in zip(anchors, agree)
-                                                 if agrees], match)))
+            match.on_vouch(mean_planar(places[agree]))
         return True
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,

@@ -52,10 +52,10 @@ _BEVPLACE_SPARSE_DATABASE = tuple(
 
 # KITTI 00 on BEVPlace's protocol, its queries described as if half of the world's 2 m columns
 # had gone since the database was recorded (Protocol.query_thinning), the database whole.
-# Retrieval barely moves there and publication falls: right matches fail the confidence test,
-# as 46 of the 107 right matches that held-out KITTI 02 leaves unpublished on that protocol
-# do, where the other KITTI pairs publish 0.98-0.99 of their revisits (docs/RESULTS.md,
-# session 50).
+# Retrieval barely moves there and right matches fail the confidence test, as 46 of the 107
+# right matches that held-out KITTI 02 left unpublished on that protocol did: they stay
+# unpublished unless a confirmed closure vouches for them (docs/RESULTS.md, sessions 50 and
+# 51).
 _BEVPLACE_THINNED_QUERIES = (
     Rule("single", "kitti", replace(_BEVPLACE_TUNING[0][0].protocol, query_thinning=0.5),
          ("kitti_bev/00",), label="thinned queries"),)
