@@ -199,14 +199,14 @@ class SearchParams:
         relocalisation request's (a ~/relocalise call waiting for its answer, `mf-lpr
         localise`), where every query is inside the map and an answer may take longer;
         "revisits" (default) a loop-closure stream's too where its weak match contradicts the
-        revisit it is on: the closures confirmed within consistency_vouch_window_m of
-        travel, carried along the odometry, put the scan at a place the map holds (a
-        reference within max_shift_m) and none puts it where the weak match does
-        (MatchVerifier.revisit_places). A weak match where the revisit puts it is the right
-        place, weakly seen; a revisit carried past the mapped route puts the scan where the
-        map cannot answer. KITTI 00 against one reference per 8 m: candidate recall 0.994 ->
-        0.999, recall@1 0.994 -> 0.999; tuning suite 0.8962 -> 0.8964, none false, 11 of
-        its queries searched with another answer (docs/RESULTS.md, session 42);
+        revisit it is on: the confirmed closures in reach (consistency_vouch), carried along
+        the odometry, put the scan at a place the map holds (a reference within max_shift_m)
+        and none puts it where the weak match does (MatchVerifier.revisit_places). A weak
+        match where the revisit puts it is the right place, weakly seen; a revisit carried
+        past the mapped route puts the scan where the map cannot answer. KITTI 00 against
+        one reference per 8 m: candidate recall 0.994 -> 0.999, recall@1 0.994 -> 0.999;
+        tuning suite 0.8962 -> 0.8964, none false, 11 of its queries searched with another
+        answer (docs/RESULTS.md, session 42);
         "every_query" every scan of a stream, where most scans revisit nothing and a scan
         from outside the map is weak as well, so the stream pays ~2.5x its time (KITTI 00
         closures 12.5 -> 33.9 ms a query at 256; docs/RESULTS.md, session 16). Without the
@@ -285,7 +285,8 @@ class SearchParams:
         candidate that lacked support when it came is published, late, once enough later ones
         agree with it (the first matches of a revisit). 0 = off.
     consistency_vouch, consistency_vouch_window_m: a confirmed closure vouches for the matches
-        within consistency_vouch_window_m of it on the path that fail min_confidence or
+        within consistency_vouch_window_m of it on the path, or of the latest match it vouched
+        for (its reach runs on along the revisit it anchors), that fail min_confidence or
         min_distinctiveness (or both) and nothing else, or consistency_min_support alone (a
         closure their own agreement helped confirm does not count), and agree with it (as above,
         without the separation): they are published, on time or late. Confidence guards against
@@ -304,7 +305,12 @@ class SearchParams:
         60 m on is predicted within ~1.3 m, inside the 1.5 m tolerance; 100 m on, ~2.2 m. 60 (30
         before) raised the tuning suite's published recall (mean 0.8759 -> 0.8795; simulated town
         0.950 -> 0.992) with no false closure, and with the odometry drifted by 2 % and 1 degree per
-        100 m no vouched pose lay 3 m off (docs/RESULTS.md, session 35).
+        100 m no vouched pose lay 3 m off (docs/RESULTS.md, session 35). Since session 52 the
+        window bounds a gap, not a revisit: a closure's reach moves to each match it vouches
+        for, each still held to that closure's carried pose, so the drift ends a long revisit's
+        vouches. Tuning suite 0.9019 -> 0.9055 (simulated handheld sensor at `default`:
+        recall published 0.277 -> 0.537), none false; the `sensors` suite and slam-eval on
+        drifted KITTI 00 unchanged (docs/RESULTS.md, session 52).
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too

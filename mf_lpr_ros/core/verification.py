@@ -27,7 +27,9 @@ evidence as the ones after them.
 A confirmed closure vouches (search.consistency_vouch) for the matches near it on the path that
 fail confidence or distinctiveness (or both) and nothing else, or odometry consistency alone (a
 candidate that found too few agreeing ones): such a match is published when it agrees with a
-confirmed candidate within consistency_vouch_window_m of travel, earlier or later. Confidence
+confirmed candidate within consistency_vouch_window_m of travel, earlier or later, of it or of
+the latest match it vouched for (its reach: a closure vouches along the whole revisit it
+anchors, for as long as the revisit's matches keep agreeing with it). Confidence
 asks how much of the query the reference explains, distinctiveness whether another place looks
 as alike, support whether the match repeats; once odometry and an independently confirmed
 closure put the query there, a match that lands within consistency_tolerance_m of where they
@@ -36,12 +38,13 @@ min_confidence) is published where the vouching closures put the query, not wher
 weak peak does: it names the place, they give the pose. Independently: a closure that a
 candidate's own agreement helped confirm does not vouch for it. Only confirmed candidates
 vouch, never a vouched match, so agreement cannot creep along a road from one vouched match to
-the next.
+the next: every match of a revisit is held to where the one closure, carried along the
+odometry, puts it, and the odometry's drift over a long revisit ends the agreement, not the
+window.
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -119,6 +122,12 @@ class _Candidate:
     linked: set[int] = field(default_factory=set)
     # Called with the pose its vouchers put it at, when one vouches for it.
     on_vouch: Callable[[np.ndarray], None] | None = None
+    # A confirmed candidate's reach: the travel of the latest match it vouched for, or its
+    # own; it vouches while the robot is within the vouch window of its reach.
+    reach_m: float = -math.inf
+
+    def extend_reach(self, travelled_m: float) -> None:
+        self.reach_m = max(self.reach_m, travelled_m)
 
 
 def _stacked(matches: "_Candidate | Iterable[_Candidate]") -> tuple[np.ndarray, np.ndarray]:
@@ -169,8 +178,7 @@ class OdometryConsistency:
         self.travelled_m = 0.0
         self._last_odometry: np.ndarray | None = None
         self._candidates: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
-        # Confirmed candidates in the vouch window, in the order of their travel (one
-        # confirmed late is older than those confirmed before it).
+        # Confirmed candidates whose reach (_Candidate.reach_m) lies in the vouch window.
         self._anchors: list[_Candidate] = []
         self._serials = 0
         self._awaiting_vouch: deque[_Candidate] = deque(maxlen=MATCHES_KEPT)
@@ -186,10 +194,9 @@ class OdometryConsistency:
                              (self._awaiting_vouch, search.consistency_vouch_window_m)):
             while kept and self.travelled_m - kept[0].travelled_m > window:
                 kept.popleft()
-        first_kept = bisect.bisect_left(
-            self._anchors, self.travelled_m - search.consistency_vouch_window_m,
-            key=lambda anchor: anchor.travelled_m)
-        del self._anchors[: max(first_kept, len(self._anchors) - MATCHES_KEPT)]
+        in_reach = [anchor for anchor in self._anchors
+                    if self.travelled_m - anchor.reach_m <= search.consistency_vouch_window_m]
+        self._anchors = sorted(in_reach, key=lambda anchor: anchor.reach_m)[-MATCHES_KEPT:]
 
     def _agreeing(self, earlier, later, min_separation_m: float) -> np.ndarray:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
@@ -240,7 +247,8 @@ class OdometryConsistency:
                      if c is not current and not c.published}
         for anchor in newly_confirmed:
             anchor.published = True
-            bisect.insort(self._anchors, anchor, key=lambda kept: kept.travelled_m)
+            anchor.extend_reach(anchor.travelled_m)
+            self._anchors.append(anchor)
         vouched = False
         if self.search.consistency_vouch:
             for anchor in newly_confirmed:
@@ -254,8 +262,8 @@ class OdometryConsistency:
         return count, confirmed, vouched
 
     def places_elsewhere(self, odometry: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-        """(k, 2) positions at which the confirmed candidates of the vouch window (as of the
-        last advance), carried along the odometry, put the query, when none of them puts it
+        """(k, 2) positions at which the confirmed candidates in reach (as of the last
+        advance), carried along the odometry, put the query, when none of them puts it
         where estimate does; else (0, 2)."""
         if not self._anchors:
             return np.zeros((0, 2))
@@ -277,6 +285,7 @@ class OdometryConsistency:
         for match, agrees, place in zip(self._awaiting_vouch, agree, places):
             if agrees and not match.published and match.serial not in anchor.linked:
                 match.published = True
+                anchor.extend_reach(match.travelled_m)
                 vouched.append(match.key)
                 if match.on_vouch is not None:
                     match.on_vouch(place)
@@ -285,9 +294,9 @@ class OdometryConsistency:
         return vouched
 
     def _vouched_now(self, match: _Candidate) -> bool:
-        """Whether a confirmed candidate in the vouch window agrees with match and was
-        confirmed without it (match did not count for it); if so, match.on_vouch hears the
-        mean of the poses where those that agree put it."""
+        """Whether a confirmed candidate in reach agrees with match and was confirmed
+        without it (match did not count for it); if so, its reach moves to match, and
+        match.on_vouch hears the mean of the poses where those that agree put it."""
         anchors = [a for a in self._anchors if a.serial not in match.linked]
         if not anchors:
             return False
@@ -295,13 +304,16 @@ class OdometryConsistency:
         agree = self._within_tolerance(places, match.estimate)
         if not agree.any():
             return False
+        for anchor, agrees in zip(anchors, agree):
+            if agrees:
+                anchor.extend_reach(match.travelled_m)
         if match.on_vouch is not None:
             match.on_vouch(mean_planar(places[agree]))
         return True
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,
                 on_vouch: Callable[[np.ndarray], None] | None = None) -> bool:
-        """Whether a confirmed candidate in the vouch window agrees with this match; when none
+        """Whether a confirmed candidate in reach agrees with this match; when none
         does, it is kept in case a later confirmed candidate will. on_vouch: called, now or
         then, with the pose at which the vouching closures, carried along the odometry, put
         the query (their mean)."""
@@ -351,8 +363,9 @@ class MatchVerifier:
 
     def revisit_places(self, match: MatchResult, odometry: np.ndarray | None) -> np.ndarray:
         """(k, 2) map positions at which the revisit the robot is on puts the query, when match
-        contradicts it: the closures confirmed within consistency_vouch_window_m of travel
-        (as of the last verified query), carried along the odometry, and none of them puts
+        contradicts it: the confirmed closures in reach (within consistency_vouch_window_m of
+        travel of them or of the latest match they vouched for, as of the last verified
+        query), carried along the odometry, and none of them puts
         the query where match does. A weak match there suggests the candidate stage left
         the place out (SearchParams.prefilter_retry "revisits"). Else (0, 2)."""
         if not self.consistency_active or odometry is None:

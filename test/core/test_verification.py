@@ -442,6 +442,63 @@ def test_a_vouch_reaches_its_own_window_while_support_keeps_the_consistency_wind
     assert ("waiting" in confirms) is (vouch_window_m == 60.0)
 
 
+def _long_revisit(search: SearchParams, indistinct: dict[int, np.ndarray], n: int,
+                  skipped: range = range(0), odometry_scale: float = 1.0) -> list:
+    """Verdicts on a revisit of n matches 1.5 m apart: the first 4 distinct and right, the
+    rest indistinct and off by indistinct.get(index, 0.2 m); none at the indices skipped. The
+    odometry handed to the verifier is the truth scaled by odometry_scale (drift)."""
+    verifier = MatchVerifier(search)
+    truth_odometry = _drive(n)
+    truth = compose_planar(MAP_T_ODOM, truth_odometry)
+    odometry = truth_odometry * [odometry_scale, odometry_scale, 1.0]
+    near = np.array([0.2, -0.1, 0.01])
+    verdicts = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        if index in skipped:
+            verdicts.append(verifier.verify(None, odo))
+        elif index < 4:
+            verdicts.append(verifier.verify(_match(pose + near), odo, key=index))
+        else:
+            verdicts.append(verifier.verify(_match(pose + indistinct.get(index, near),
+                                                   **DOUBTS["indistinct"]), odo, key=index))
+    return verdicts
+
+
+def test_a_closure_vouches_along_the_whole_revisit_it_anchors():
+    """A revisit confirmed on its first 4 matches goes on for 100 m of indistinct matches,
+    with a vouch window of 20 m: each is vouched for, the closure's reach moving with the
+    matches it vouches for. A match 15 m off does not move it: past 20 m of such matches the
+    revisit's right ones wait. A gap longer than the window ends the reach as well."""
+    search = SearchParams(consistency_min_support=2, consistency_vouch_window_m=20.0)
+    verdicts = _long_revisit(search, {}, 70)
+    assert all(v.accepted for v in verdicts[3:])
+    assert all(v.reason == VOUCHED for v in verdicts[4:])
+
+    wrong = {index: np.array([15.0, 4.0, 0.5]) for index in range(10, 26)}   # 22.5 m
+    verdicts = _long_revisit(search, wrong, 40)
+    assert all(v.accepted for v in verdicts[4:10])
+    assert not any(v.accepted for v in verdicts[10:])
+    assert all(v.may_be_confirmed for v in verdicts[26:])
+
+    verdicts = _long_revisit(search, {}, 40, skipped=range(10, 25))
+    assert all(v.accepted for v in verdicts[4:10])
+    assert not any(v.accepted for v in verdicts[25:])
+
+
+def test_the_odometry_drift_ends_a_long_revisit_vouch():
+    """With odometry 3 % short, where the closure puts the query strays from the truth by
+    ~4.5 cm a metre: the right matches of the revisit are vouched for until the gap passes
+    consistency_tolerance_m (1.5 m, ~50 m on), then wait, though each lies within the window
+    of the last one vouched for."""
+    search = SearchParams(consistency_min_support=2, consistency_vouch_window_m=20.0,
+                          consistency_tolerance_m=1.5)
+    verdicts = _long_revisit(search, {}, 70, odometry_scale=0.97)
+    vouched = [index for index, v in enumerate(verdicts) if v.reason == VOUCHED]
+    assert vouched[0] == 4 and vouched == list(range(4, vouched[-1] + 1))
+    assert 20 < vouched[-1] < 50
+    assert not any(v.accepted for v in verdicts[vouched[-1] + 2:])
+
+
 def test_a_closure_vouches_for_an_unsupported_match_only_if_confirmed_without_it():
     """Distinct matches that lack support (fewer than 2 agree) are vouched for, like
     indistinct ones, by a closure confirmed in the vouch window, but never by a closure that
