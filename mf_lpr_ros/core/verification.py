@@ -194,9 +194,10 @@ class OdometryConsistency:
                              (self._awaiting_vouch, search.consistency_vouch_window_m)):
             while kept and self.travelled_m - kept[0].travelled_m > window:
                 kept.popleft()
-        in_reach = [anchor for anchor in self._anchors
-                    if self.travelled_m - anchor.reach_m <= search.consistency_vouch_window_m]
-        self._anchors = sorted(in_reach, key=lambda anchor: anchor.reach_m)[-MATCHES_KEPT:]
+        self._anchors = [anchor for anchor in self._anchors
+                         if self.travelled_m - anchor.reach_m <= search.consistency_vouch_window_m]
+        if len(self._anchors) > MATCHES_KEPT:
+            self._anchors = sorted(self._anchors, key=lambda anchor: anchor.reach_m)[-MATCHES_KEPT:]
 
     def _agreeing(self, earlier, later, min_separation_m: float) -> np.ndarray:
         """Whether each earlier match's estimate, carried along the odometry to the later's,
