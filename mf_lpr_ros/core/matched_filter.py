@@ -373,6 +373,18 @@ def local_fft_shape(height: int, width: int, max_shift: int) -> tuple[int, int]:
             sp_fft.next_fast_len(width + max_shift, real=True))
 
 
+def detail_emphasis(shape: tuple[int, int], sharpening: float) -> np.ndarray:
+    """The half-spectrum (shape[0], shape[1] // 2 + 1) of the separable kernel
+    [-s, 1 + 2s, -s] along each axis (s = sharpening): 1 at the mean, 1 + 4s at the finest
+    detail. A reference so sharpened scores a query by where its cells lie more than by the
+    broad mass of its structures (docs/RESULTS.md, session 53)."""
+    def along(frequencies: np.ndarray) -> np.ndarray:
+        return 1.0 + 2.0 * sharpening * (1.0 - np.cos(2.0 * np.pi * frequencies))
+
+    return (along(np.fft.fftfreq(shape[0]))[:, None]
+            * along(np.fft.rfftfreq(shape[1]))[None, :]).astype(np.float32)
+
+
 class LocalCorrelation:
     """The local stage's windowed correlation by 2-D FFT, for H x W images within max_shift.
 
@@ -382,13 +394,21 @@ class LocalCorrelation:
     1500 finalists).
     """
 
-    def __init__(self, image_shape: tuple[int, int], max_shift: int) -> None:
+    def __init__(self, image_shape: tuple[int, int], max_shift: int,
+                 sharpening: float = 0.0) -> None:
         self.shape = local_fft_shape(*image_shape, max_shift)
         self.window = np.arange(-max_shift, max_shift + 1)
+        self.emphasis = detail_emphasis(self.shape, sharpening) if sharpening > 0 else None
 
     def spectra(self, images: np.ndarray) -> np.ndarray:
         """The spectra of images (..., H, W)."""
         return sp_fft.rfft2(np.asarray(images, dtype=np.float32), s=self.shape, axes=(-2, -1))
+
+    def reference_spectra(self, images: np.ndarray) -> np.ndarray:
+        """The spectra of reference images (..., H, W) as the queries are correlated with them:
+        sharpened by detail_emphasis when sharpening > 0."""
+        spectra = self.spectra(images)
+        return spectra if self.emphasis is None else spectra * self.emphasis
 
     @staticmethod
     def stack(spectra: list[np.ndarray]) -> np.ndarray:

@@ -63,14 +63,26 @@ _INDEX_BLOCKS_WITHOUT_PROGRESS = 16
 _HEADINGS_WITHOUT_PROGRESS = 500
 
 
-def _norm_under(image: np.ndarray, mask: np.ndarray, di: int, dj: int) -> float:
-    """Norm of image over the cells mask covers once moved by (di, dj): the part of a reference
-    a query's footprint overlaps at that alignment (correlation index: q(x) with r(x + d))."""
+def _overlap(image: np.ndarray, di: int, dj: int) -> tuple[slice, slice, np.ndarray]:
+    """(rows, cols, the part of image they meet once it is moved by (di, dj)): a query's cells
+    q[rows, cols] face that part of a reference (correlation index: q(x) with r(x + d))."""
     height, width = image.shape
     rows = slice(max(0, -di), min(height, height - di))
     cols = slice(max(0, -dj), min(width, width - dj))
-    shifted = image[rows.start + di:rows.stop + di, cols.start + dj:cols.stop + dj]
+    return rows, cols, image[rows.start + di:rows.stop + di, cols.start + dj:cols.stop + dj]
+
+
+def _norm_under(image: np.ndarray, mask: np.ndarray, di: int, dj: int) -> float:
+    """Norm of image over the cells mask covers once moved by (di, dj): the part of a reference
+    a query's footprint overlaps at that alignment."""
+    rows, cols, shifted = _overlap(image, di, dj)
     return float(np.sqrt(np.sum(np.square(shifted, dtype=np.float64)[mask[rows, cols]])))
+
+
+def _correlation_at(query: np.ndarray, reference: np.ndarray, di: int, dj: int) -> float:
+    """The plain correlation of query with reference moved by (di, dj)."""
+    rows, cols, shifted = _overlap(reference, di, dj)
+    return float(np.sum(query[rows, cols] * shifted, dtype=np.float64))
 
 
 @dataclass
@@ -222,7 +234,7 @@ class MatchedFilterIndex:
         backend = make_backend(search.backend, size, self.low_shift, max(capacity, 1),
                                prefilter=search.prefilter_top_k > 0,
                                local_size=self.params.size, local_shift=self.high_shift,
-                               threads=search.threads)
+                               threads=search.threads, local_sharpening=search.local_sharpening)
         self.backend = backend.name
         self.bank, self.prefilter = backend.bank, backend.prefilter
         # The candidate stage's second opinion on the prefilter's list (_rescored): small
@@ -1013,7 +1025,7 @@ class MatchedFilterIndex:
                                              return_inverse=True)
         reference_images = np.stack([weighted(self.map.occupancy(int(reference)), w,
                                               self.covered) for reference in references])
-        reference_spectra = correlation.spectra(reference_images)
+        reference_spectra = correlation.reference_spectra(reference_images)
 
         def correlate(job_of_pair: np.ndarray, angle_of_pair: np.ndarray) -> np.ndarray:
             """The surfaces of the query at angle_sets[job][angle] against job's reference,
@@ -1041,12 +1053,16 @@ class MatchedFilterIndex:
         best = self._turned_query[float(angles[a])]
         best_query, best_covered = best.weights, best.covered
         query_norm = float(np.linalg.norm(best_query))
+        di, dj = row - self.high_shift, col - self.high_shift
         if self._query_seen is not None:
             # The cosine over the cells the query saw: the reference beyond them is unknown
             # to the query, not a mismatch.
-            reference_norm = _norm_under(reference_image, best_covered, row - self.high_shift,
-                                         col - self.high_shift)
-        confidence = raw / max(query_norm * reference_norm, 1e-9)
+            reference_norm = _norm_under(reference_image, best_covered, di, dj)
+        # A sharpened reference (search.local_sharpening) finds the alignment; the confidence
+        # stays the cosine of the images themselves, as its thresholds read it.
+        plain = (raw if self._local_correlation.emphasis is None
+                 else _correlation_at(best_query, reference_image, di, dj))
+        confidence = plain / max(query_norm * reference_norm, 1e-9)
         return _LocalPeak(reference=reference, score=raw / normaliser,
                           confidence=float(np.clip(confidence, 0.0, 1.0)), angles=angles,
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))

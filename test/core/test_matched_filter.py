@@ -1,10 +1,12 @@
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from mf_lpr_ros.core.matched_filter import (
     LocalCorrelation,
     SpectralBank,
     correlate_fft2,
+    detail_emphasis,
 )
 from mf_lpr_ros.core.workers import Workers
 
@@ -133,6 +135,36 @@ def test_query_spectra_serve_several_references_and_batches(rng):
     for k in range(5):
         np.testing.assert_allclose(pairs[k], correlate_fft2(queries[k: k + 1],
                                                             references[k % 2], 6)[0], atol=1e-5)
+
+
+def test_a_sharpened_reference_is_the_reference_convolved_with_the_kernel(rng):
+    # Zero border, as the local stage's images have beyond their window: the FFT's padding
+    # then holds the whole convolution.
+    reference = np.zeros((30, 30), dtype=np.float32)
+    reference[2:-2, 2:-2] = rng.normal(size=(26, 26))
+    queries = rng.normal(size=(3, 30, 30)).astype(np.float32)
+    s = 0.125
+    kernel = np.array([-s, 1 + 2 * s, -s])
+    sharpened = ndimage.convolve(ndimage.convolve(reference, kernel[None, :], mode="constant"),
+                                 kernel[:, None], mode="constant")
+    correlation = LocalCorrelation((30, 30), 6, sharpening=s)
+    np.testing.assert_allclose(
+        correlation.correlate(correlation.spectra(queries),
+                              correlation.reference_spectra(reference[None])),
+        correlate_fft2(queries, sharpened, 6), atol=1e-4)
+    # Off, a reference is correlated as it is.
+    plain = LocalCorrelation((30, 30), 6)
+    np.testing.assert_array_equal(plain.reference_spectra(reference[None]),
+                                  plain.spectra(reference[None]))
+
+
+def test_detail_emphasis_keeps_the_mean_and_raises_the_finest_detail():
+    emphasis = detail_emphasis((8, 8), 0.125)
+    assert emphasis.shape == (8, 5)
+    assert emphasis[0, 0] == pytest.approx(1.0)
+    # The finest detail along both axes: (1 + 4s)^2.
+    assert emphasis[4, 4] == pytest.approx(1.5 ** 2)
+    assert np.all(np.diff(emphasis[0, :]) > 0)
 
 
 def test_a_bank_on_two_threads_scores_as_on_one(rng):

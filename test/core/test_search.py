@@ -221,6 +221,18 @@ def test_the_local_stage_batches_finalists_each_to_its_own_peak(synthetic_map):
     assert len(calls) == 2
 
 
+def test_a_sharpened_local_stage_keeps_the_images_cosine_as_confidence(world, synthetic_map):
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    query = describe_points(points, PARAMS)
+    plain, sharpened = (MatchedFilterIndex(synthetic_map, SearchParams(local_sharpening=s)
+                                           ).query(query) for s in (0.0, 0.25))
+    assert sharpened.reference_index == plain.reference_index == 0
+    # The same cell and angle: the sharpened peak only scores them differently.
+    np.testing.assert_allclose(sharpened.pose, plain.pose, atol=0.1)
+    assert sharpened.score > plain.score
+    assert sharpened.confidence == pytest.approx(plain.confidence, abs=1e-5)
+
+
 def test_sub_cell_refinement_beats_cell_quantisation(world, synthetic_map):
     rng = np.random.default_rng(2)
     errors = []

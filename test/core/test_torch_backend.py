@@ -9,7 +9,7 @@ import pytest
 from mf_lpr_ros.core.backends import resolve_backend
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.matched_filter import SpectralBank, correlate_fft2
+from mf_lpr_ros.core.matched_filter import LocalCorrelation, SpectralBank, correlate_fft2
 from mf_lpr_ros.core.prefilter import PolarSpectrumIndex
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.errors import ConfigError
@@ -54,6 +54,13 @@ def test_bank_operations_match_numpy():
     np.testing.assert_allclose(
         correlation.correlate(correlation.spectra(queries), correlation.spectra(references[3:4])),
         correlate_fft2(queries, references[3], 4), atol=1e-4)
+    sharpened = torch_backend.TorchLocalCorrelation(references.shape[1:], 4, sharpening=0.125)
+    on_host = LocalCorrelation(references.shape[1:], 4, sharpening=0.125)
+    np.testing.assert_allclose(
+        sharpened.correlate(sharpened.spectra(queries),
+                            sharpened.reference_spectra(references[3:4])),
+        on_host.correlate(on_host.spectra(queries), on_host.reference_spectra(references[3:4])),
+        atol=1e-4)
 
 
 def test_prefilter_matches_numpy():

@@ -43,11 +43,12 @@ def resolve_backend(name: str) -> str:
 
 
 def make_backend(name: str, image_size: int, max_shift: int, capacity: int,
-                 prefilter: bool, local_size: int, local_shift: int, threads: int = 1
-                 ) -> SearchBackend:
+                 prefilter: bool, local_size: int, local_shift: int, threads: int = 1,
+                 local_sharpening: float = 0.0) -> SearchBackend:
     """A bank of image_size^2 low-resolution references searched within max_shift cells (its
     products on threads threads, numpy only), with a prefilter when asked, and the local
-    stage's correlation of local_size^2 images within local_shift cells."""
+    stage's correlation of local_size^2 images within local_shift cells, its references
+    sharpened by local_sharpening (matched_filter.detail_emphasis)."""
     resolved = resolve_backend(name)
     if resolved == "torch":
         from mf_lpr_ros.core.backends import torch_backend
@@ -58,11 +59,13 @@ def make_backend(name: str, image_size: int, max_shift: int, capacity: int,
             torch_backend.TorchSpectralBank(image_size, image_size, max_shift, capacity, device),
             torch_backend.TorchPolarSpectrumIndex(image_size, capacity, device)
             if prefilter else None,
-            torch_backend.TorchLocalCorrelation((local_size, local_size), local_shift, device),
+            torch_backend.TorchLocalCorrelation((local_size, local_size), local_shift, device,
+                                                 local_sharpening),
             Workers())
     workers = Workers(threads)
     return SearchBackend(resolved, SpectralBank(image_size, image_size, max_shift, capacity,
                                                 workers),
                          PolarSpectrumIndex(image_size, capacity=capacity, workers=workers)
                          if prefilter else None,
-                         LocalCorrelation((local_size, local_size), local_shift), workers)
+                         LocalCorrelation((local_size, local_size), local_shift,
+                                          local_sharpening), workers)

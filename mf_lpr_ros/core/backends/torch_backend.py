@@ -140,9 +140,11 @@ class TorchLocalCorrelation(LocalCorrelation):
     """matched_filter.LocalCorrelation on a torch device (spectra stay on it)."""
 
     def __init__(self, image_shape: tuple[int, int], max_shift: int,
-                 device: torch.device | None = None) -> None:
-        super().__init__(image_shape, max_shift)
+                 device: torch.device | None = None, sharpening: float = 0.0) -> None:
+        super().__init__(image_shape, max_shift, sharpening)
         self.device = device or default_device()
+        if self.emphasis is not None:
+            self.emphasis = torch.from_numpy(self.emphasis).to(self.device)
 
     def spectra(self, images: np.ndarray) -> torch.Tensor:
         return torch.fft.rfft2(torch.from_numpy(np.asarray(images, np.float32)).to(self.device),
