@@ -32,6 +32,7 @@ from mf_lpr_ros.core.peak import inverse_2x2, smallest_eigenvalue, subcell_peak,
 from mf_lpr_ros.core.pose import (
     alignment_from_poses,
     planar,
+    planar_error,
     query_pose_from_alignment,
     reference_distance,
     rotate_covariance,
@@ -160,6 +161,23 @@ def passes_confidence(confidence: float, place_similarity: float, search: Search
     return confidence >= search.min_confidence or (
         search.min_relative_confidence > 0
         and confidence >= search.min_relative_confidence * place_similarity)
+
+
+def distinct(match: MatchResult, search: SearchParams) -> bool:
+    """The distinctiveness test: at the global stage's resolution, or else at the local
+    stage's (SearchParams.min_local_distinctiveness; a NaN local figure fails)."""
+    return (match.distinctiveness >= search.min_distinctiveness
+            or (search.min_local_distinctiveness > 0
+                and match.local_distinctiveness >= search.min_local_distinctiveness))
+
+
+def within_tolerance(predicted: np.ndarray, estimate: np.ndarray, search: SearchParams
+                     ) -> "np.ndarray | bool":
+    """Whether planar poses (..., 3) agree as odometry consistency asks: within
+    consistency_tolerance_m and consistency_tolerance_deg of estimate."""
+    position_gap, yaw_gap_deg = planar_error(predicted, estimate)
+    return ((position_gap <= search.consistency_tolerance_m)
+            & (yaw_gap_deg <= search.consistency_tolerance_deg))
 
 
 def reads_spectra_on_demand(search: SearchParams, n_references: int) -> bool:
@@ -380,7 +398,51 @@ class MatchedFilterIndex:
             result = self._search(occupancy, n_refs, retry_top_k)
             result.timings_ms = {stage: ms + first_ms[stage]
                                  for stage, ms in result.timings_ms.items()}
+        if (self.search.revisit_check and revisit_places is not None
+                and not self._headings_unknown
+                and not (passes_confidence(result.confidence, result.place_similarity,
+                                           self.search) and distinct(result, self.search))):
+            result = self._revisit_checked(occupancy, result, revisit_places(result), n_refs)
         return result
+
+    def _revisit_checked(self, occupancy: np.ndarray, match: MatchResult, places: np.ndarray,
+                         n_refs: int) -> MatchResult:
+        """SearchParams.revisit_check: the reference nearest each place where the stream's
+        revisit puts the scan ((k, 3) planar map poses; none where the match agrees with it),
+        aligned by the local stage at the turn that place implies; the best of those whose
+        alignment puts the query at that place (within consistency_tolerance_m and _deg) and
+        scores within min_distinctiveness of the match is reported instead, as a match the
+        images alone do not tell apart (distinctiveness 0): the verifier publishes it only
+        where a confirmed closure vouches for it. Else the match as it was. Not where the
+        map's headings are unknown: a place's turn there names no reference's view."""
+        started = time.perf_counter()
+        search = self.search
+        positions = self.map.poses[:n_refs, :2, 3]
+        floor = (1.0 - search.min_distinctiveness) * match.score
+        best: _LocalPeak | None = None
+        for place in np.asarray(places, dtype=np.float64):
+            offsets = positions - place[:2]
+            nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
+            if np.hypot(*offsets[nearest]) > search.max_shift_m:
+                continue
+            turn = math.degrees(place[2] - self._planar_poses(nearest)[2])
+            peak = self._local(occupancy, nearest, self._snapped_global_angle(turn))
+            if peak.score < floor or (best is not None and peak.score <= best.score):
+                continue
+            if within_tolerance(self._result(peak, match.candidates).pose, place, search):
+                best = peak
+        if best is None:
+            return match
+        checked = self._result(best, match.candidates)
+        if (checked.confidence < search.min_confidence and search.min_relative_confidence > 0):
+            checked.place_similarity = self._place_similarity_of(best.reference, n_refs)
+        checked.distinctiveness = 0.0
+        checked.hypotheses = [Hypothesis(checked.reference_index, checked.pose, checked.score,
+                                         checked.confidence)] + match.hypotheses
+        checked.timings_ms = dict(match.timings_ms)
+        checked.timings_ms["local"] += (time.perf_counter() - started) * 1e3
+        checked.searched = match.searched
+        return checked
 
     def _retries(self, weak: MatchResult, request: bool,
                  revisit_places: Callable[[MatchResult], np.ndarray] | None,
@@ -397,7 +459,8 @@ class MatchedFilterIndex:
         places = revisit_places(weak)
         if not len(places):
             return False
-        found = self._reference_positions().query_ball_point(places, self.search.max_shift_m)
+        found = self._reference_positions().query_ball_point(places[:, :2],
+                                                              self.search.max_shift_m)
         return any(reference < n_refs for near in found for reference in near)
 
     def _search(self, occupancy: np.ndarray, n_refs: int, top_k: int) -> MatchResult:
@@ -713,8 +776,12 @@ class MatchedFilterIndex:
             located = (self.bank.peaks(volume, column) if volume is not None
                        else self.bank.locate(prepared, columns[column]))
             return float(self.global_angles[headings[int(located[0][0])]])
-        relative = math.degrees(match.pose[2] - self._planar_poses(reference)[2])
-        index = int(round(relative / self.search.rotation_step_deg)) % len(self.global_angles)
+        return self._snapped_global_angle(
+            math.degrees(match.pose[2] - self._planar_poses(reference)[2]))
+
+    def _snapped_global_angle(self, turn_deg: float) -> float:
+        """The global angle nearest turn_deg (their rotation tables are prepared)."""
+        index = int(round(turn_deg / self.search.rotation_step_deg)) % len(self.global_angles)
         return float(self.global_angles[index])
 
     @property

@@ -56,10 +56,9 @@ from mf_lpr_ros.core.pose import (
     alignment_from_poses,
     compose_planar,
     mean_planar,
-    planar_error,
     relative_planar,
 )
-from mf_lpr_ros.core.search import MatchResult, passes_confidence
+from mf_lpr_ros.core.search import MatchResult, distinct, passes_confidence, within_tolerance
 from mf_lpr_ros.errors import ConfigError
 from mf_lpr_ros.params import SearchParams
 
@@ -212,9 +211,7 @@ class OdometryConsistency:
 
     def _within_tolerance(self, predicted: np.ndarray, estimate: np.ndarray) -> np.ndarray:
         """Whether each predicted pose lies within the consistency tolerances of estimate."""
-        position_gap, yaw_gap_deg = planar_error(predicted, estimate)
-        return (position_gap <= self.search.consistency_tolerance_m) \
-            & (yaw_gap_deg <= self.search.consistency_tolerance_deg)
+        return within_tolerance(predicted, estimate, self.search)
 
     def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
                 ) -> tuple[int, dict[Any, str], bool]:
@@ -263,16 +260,16 @@ class OdometryConsistency:
         return count, confirmed, vouched
 
     def places_elsewhere(self, odometry: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-        """(k, 2) positions at which the confirmed candidates in reach (as of the last
+        """(k, 3) planar map poses at which the confirmed candidates in reach (as of the last
         advance), carried along the odometry, put the query, when none of them puts it
-        where estimate does; else (0, 2)."""
+        where estimate does; else (0, 3)."""
         if not self._anchors:
-            return np.zeros((0, 2))
+            return np.zeros((0, 3))
         anchors_odometry, anchors_estimate = _stacked(self._anchors)
         places = _carry(anchors_estimate, anchors_odometry, np.asarray(odometry, dtype=np.float64))
         if self._within_tolerance(places, np.asarray(estimate, dtype=np.float64)).any():
-            return np.zeros((0, 2))
-        return places[:, :2]
+            return np.zeros((0, 3))
+        return places
 
     def _vouch_from(self, anchor: _Candidate) -> list[Any]:
         """Keys of the matches awaiting a vouch that agree with a newly confirmed candidate
@@ -328,14 +325,6 @@ class OdometryConsistency:
         return False
 
 
-def distinct(match: MatchResult, search: SearchParams) -> bool:
-    """The distinctiveness test: at the global stage's resolution, or else at the local
-    stage's (SearchParams.min_local_distinctiveness; a NaN local figure fails)."""
-    return (match.distinctiveness >= search.min_distinctiveness
-            or (search.min_local_distinctiveness > 0
-                and match.local_distinctiveness >= search.min_local_distinctiveness))
-
-
 class MatchVerifier:
     """Applies the tests of the module doc to a stream of matches, in query time order.
 
@@ -363,14 +352,15 @@ class MatchVerifier:
             search, max(search.consistency_min_separation_m, submap_m))
 
     def revisit_places(self, match: MatchResult, odometry: np.ndarray | None) -> np.ndarray:
-        """(k, 2) map positions at which the revisit the robot is on puts the query, when match
-        contradicts it: the confirmed closures in reach (within consistency_vouch_window_m of
-        travel of them or of the latest match they vouched for, as of the last verified
-        query), carried along the odometry, and none of them puts
+        """(k, 3) planar map poses at which the revisit the robot is on puts the query, when
+        match contradicts it: the confirmed closures in reach (within
+        consistency_vouch_window_m of travel of them or of the latest match they vouched for,
+        as of the last verified query), carried along the odometry, and none of them puts
         the query where match does. A weak match there suggests the candidate stage left
-        the place out (SearchParams.prefilter_retry "revisits"). Else (0, 2)."""
+        the place out (SearchParams.prefilter_retry "revisits"), an indistinct one that a
+        look-alike outscored the place (SearchParams.revisit_check). Else (0, 3)."""
         if not self.consistency_active or odometry is None:
-            return np.zeros((0, 2))
+            return np.zeros((0, 3))
         return self.consistency.places_elsewhere(odometry, match.pose)
 
     def verify(self, match: MatchResult | None, odometry: np.ndarray | None = None,

@@ -273,8 +273,8 @@ def _ranking_prefilter(index, ranking):
 # (MatchVerifier.revisit_places): None, no verifier's answer; "agrees", nowhere (the weak
 # match is where the revisit puts it); "mapped", at the query's true place; "unmapped", 900 m
 # from any reference (a revisit carried on past the mapped route).
-_REVISIT_PLACES = {"agrees": np.zeros((0, 2)), "mapped": np.array([[1.3, -0.7]]),
-                   "unmapped": np.array([[900.0, 900.0]])}
+_REVISIT_PLACES = {"agrees": np.zeros((0, 3)), "mapped": np.array([[1.3, -0.7, 0.5]]),
+                   "unmapped": np.array([[900.0, 900.0, 0.0]])}
 
 
 @pytest.mark.parametrize("retry_top_k, retry, answers_request, revisit, retried", [
@@ -291,9 +291,10 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
         world, synthetic_map, retry_top_k, retry, answers_request, revisit, retried):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     query = describe_points(points, PARAMS)
+    # The retry alone: the revisit check would read the same places (the test below).
     index = MatchedFilterIndex(synthetic_map, SearchParams(
         prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=retry_top_k,
-        prefilter_retry=retry, prefilter_expand_m=0.0))
+        prefilter_retry=retry, prefilter_expand_m=0.0, revisit_check=False))
     # The prefilter puts the true place (reference 0) fourth.
     asked = _ranking_prefilter(index, [3, 4, 1, 0, 2])
     asked_of = []
@@ -314,6 +315,40 @@ def test_a_weak_match_is_searched_again_over_the_wider_candidate_list(
     else:
         assert asked == [1]
         assert result.reference_index == 3
+        assert result.confidence < SearchParams().min_confidence
+
+
+@pytest.mark.parametrize("revisit_check, revisit_pose, reported", [
+    (True, (1.3, -0.7, 0.5), 0),           # the revisit's place: reported, as it aligns there
+    (False, (1.3, -0.7, 0.5), 3),          # the option off
+    (True, (3.8, 1.0, 0.5), 3),            # 3 m off the place the scan aligns at
+    (True, (1.3, -0.7, 0.95), 3),          # turned 26 degrees from the scan's alignment
+    (True, (900.0, 900.0, 0.0), 3),        # past the mapped route
+    (True, None, 3)])                      # no revisit contradicts the match
+def test_a_match_that_contradicts_the_revisit_gives_way_to_the_place_the_revisit_predicts(
+        world, synthetic_map, revisit_check, revisit_pose, reported):
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    index = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=0,
+        prefilter_expand_m=0.0, revisit_check=revisit_check))
+    # The candidate stage hands on a wrong place alone (reference 3): a weak match.
+    _ranking_prefilter(index, [3, 4, 1, 0, 2])
+    asked_of = []
+
+    def revisit_places(match):
+        asked_of.append(match.reference_index)
+        return np.zeros((0, 3)) if revisit_pose is None else np.array([revisit_pose])
+
+    result = index.query(describe_points(points, PARAMS), revisit_places=revisit_places)
+    assert asked_of == ([3] if revisit_check else [])
+    assert result.reference_index == reported
+    if reported == 0:
+        assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.15
+        assert yaw_error_deg(result.pose[2], 0.5) < 0.6
+        # The images alone did not single it out: only a vouch publishes it.
+        assert result.distinctiveness == 0.0
+        assert [h.reference_index for h in result.hypotheses][:2] == [0, 3]
+    else:
         assert result.confidence < SearchParams().min_confidence
 
 

@@ -9,7 +9,13 @@ import pytest
 
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import compose_planar, mean_planar, planar_error, relative_planar
+from mf_lpr_ros.core.pose import (
+    compose_planar,
+    mean_planar,
+    planar_error,
+    relative_planar,
+    wrap_angle,
+)
 from mf_lpr_ros.core.search import MatchedFilterIndex, MatchResult
 from mf_lpr_ros.core.verification import (
     AWAITING_VOUCH,
@@ -565,8 +571,10 @@ def test_a_revisit_names_where_it_puts_the_query_only_when_a_match_contradicts_i
     assert not any(len(places) for places in here)
     assert [len(places) > 0 for places in there] == [False] * 3 + [True] * 12 + [False] * 15
     for index in range(3, 15):
-        # One place per confirmed closure, each where the match it was confirmed on puts it.
-        assert np.abs(there[index] - (truth[index, :2] + [0.2, -0.1])).max() < 0.3
+        # One pose per confirmed closure, each where the match it was confirmed on puts it.
+        assert there[index].shape[1] == 3
+        assert np.abs(there[index][:, :2] - (truth[index, :2] + [0.2, -0.1])).max() < 0.3
+        assert np.abs(wrap_angle(there[index][:, 2] - truth[index, 2] - 0.01)).max() < 0.01
     assert not len(MatchVerifier(search, odometry_known=False).revisit_places(
         _match(elsewhere[5]), odometry[5]))
 
