@@ -419,7 +419,7 @@ class MatchedFilterIndex:
         search = self.search
         positions = self.map.poses[:n_refs, :2, 3]
         floor = (1.0 - search.min_distinctiveness) * match.score
-        best: _LocalPeak | None = None
+        checked: MatchResult | None = None
         for place in np.asarray(places, dtype=np.float64):
             offsets = positions - place[:2]
             nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
@@ -427,15 +427,16 @@ class MatchedFilterIndex:
                 continue
             turn = math.degrees(place[2] - self._planar_poses(nearest)[2])
             peak = self._local(occupancy, nearest, self._snapped_global_angle(turn))
-            if peak.score < floor or (best is not None and peak.score <= best.score):
+            if peak.score < floor or (checked is not None and peak.score <= checked.score):
                 continue
-            if within_tolerance(self._result(peak, match.candidates).pose, place, search):
-                best = peak
-        if best is None:
+            aligned = self._result(peak, match.candidates)
+            if within_tolerance(aligned.pose, place, search):
+                checked = aligned
+        if checked is None:
             return match
-        checked = self._result(best, match.candidates)
         if (checked.confidence < search.min_confidence and search.min_relative_confidence > 0):
-            checked.place_similarity = self._place_similarity_of(best.reference, n_refs)
+            checked.place_similarity = self._place_similarity_of(checked.reference_index,
+                                                                 n_refs)
         checked.distinctiveness = 0.0
         checked.hypotheses = [Hypothesis(checked.reference_index, checked.pose, checked.score,
                                          checked.confidence)] + match.hypotheses
