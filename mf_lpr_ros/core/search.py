@@ -130,6 +130,9 @@ class MatchResult:
         prefilter's list and its map neighbours); None: every active reference was searched.
         A true place missing from it can be reported only as the place nearest the match
         (the re-ranking): what the candidate stage loses.
+    revisit_predicted: the revisit check (SearchParams.revisit_check) reported this reference
+        in place of a look-alike the images could not tell apart from it: where the stream's
+        revisit, carried along the odometry, put the scan.
     place_similarity: how alike the map's own views of the matched place are
         (MatchedFilterIndex.place_similarity of the scored reference), the yardstick of
         SearchParams.min_relative_confidence. Measured only for a match under min_confidence
@@ -153,6 +156,7 @@ class MatchResult:
     scored_reference: int | None = None
     searched: np.ndarray | None = None
     place_similarity: float = math.nan
+    revisit_predicted: bool = False
 
 
 def passes_confidence(confidence: float, place_similarity: float, search: SearchParams) -> bool:
@@ -438,6 +442,7 @@ class MatchedFilterIndex:
             checked.place_similarity = self._place_similarity_of(checked.reference_index,
                                                                  n_refs)
         checked.distinctiveness = 0.0
+        checked.revisit_predicted = True
         checked.hypotheses = [Hypothesis(checked.reference_index, checked.pose, checked.score,
                                          checked.confidence)] + match.hypotheses
         checked.timings_ms = dict(match.timings_ms)

@@ -89,6 +89,8 @@ class Verdict:
 
 CONFIRMED_LATER = "accepted: confirmed by later matches"
 VOUCHED = "accepted: a confirmed closure vouches for it"
+# A match the revisit check reported (MatchResult.revisit_predicted).
+VOUCHED_WHERE_PREDICTED = VOUCHED + " where its revisit put the scan"
 AWAITING_VOUCH = "no confirmed closure vouches for it yet"
 
 
@@ -407,7 +409,8 @@ class MatchVerifier:
             # (docs/RESULTS.md, sessions 20 and 51): a weak match takes their pose.
             on_vouch = (lambda pose: take_pose(match, pose)) if weak else None
             if self.consistency.vouched(odometry, match.pose, key, on_vouch):
-                return Verdict(True, VOUCHED, fitness)
+                return Verdict(True, VOUCHED_WHERE_PREDICTED if match.revisit_predicted
+                               else VOUCHED, fitness)
             return Verdict(False, f"{'; '.join(reasons)}; {AWAITING_VOUCH}", fitness,
                            awaiting_vouch=True)
         if not self.consistency_active:

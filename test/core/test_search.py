@@ -346,10 +346,11 @@ def test_a_match_that_contradicts_the_revisit_gives_way_to_the_place_the_revisit
         assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.15
         assert yaw_error_deg(result.pose[2], 0.5) < 0.6
         # The images alone did not single it out: only a vouch publishes it.
-        assert result.distinctiveness == 0.0
+        assert result.distinctiveness == 0.0 and result.revisit_predicted
         assert [h.reference_index for h in result.hypotheses][:2] == [0, 3]
     else:
         assert result.confidence < SearchParams().min_confidence
+        assert not result.revisit_predicted
 
 
 def test_a_strong_match_is_not_searched_again(world, synthetic_map):

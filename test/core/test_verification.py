@@ -22,6 +22,7 @@ from mf_lpr_ros.core.verification import (
     CONFIRMED_LATER,
     MATCHES_KEPT,
     VOUCHED,
+    VOUCHED_WHERE_PREDICTED,
     MatchVerifier,
 )
 from mf_lpr_ros.errors import ConfigError
@@ -468,6 +469,23 @@ def _long_revisit(search: SearchParams, indistinct: dict[int, np.ndarray], n: in
             verdicts.append(verifier.verify(_match(pose + indistinct.get(index, near),
                                                    **DOUBTS["indistinct"]), odo, key=index))
     return verdicts
+
+
+def test_a_vouch_names_a_match_the_revisit_check_reported():
+    # The same revisit; at index 6 the search reported the place the revisit predicted
+    # (SearchParams.revisit_check): its verdict says so, the others' do not.
+    search = SearchParams(consistency_min_support=2)
+    verifier = MatchVerifier(search)
+    odometry = _drive(10)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    reasons = []
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        match = _match(pose + [0.2, -0.1, 0.01],
+                       **(DOUBTS["indistinct"] if index >= 4 else {}))
+        match.revisit_predicted = index == 6
+        reasons.append(verifier.verify(match, odo, key=index).reason)
+    assert reasons[6] == VOUCHED_WHERE_PREDICTED
+    assert all(reason == VOUCHED for reason in reasons[4:6] + reasons[7:])
 
 
 def test_a_closure_vouches_along_the_whole_revisit_it_anchors():
