@@ -443,8 +443,11 @@ class MatchedFilterIndex:
                                                                  n_refs)
         checked.distinctiveness = 0.0
         checked.revisit_predicted = True
+        # The place's reference may have been a finalist too: one answer, listed once.
         checked.hypotheses = [Hypothesis(checked.reference_index, checked.pose, checked.score,
-                                         checked.confidence)] + match.hypotheses
+                                         checked.confidence)] + [
+            other for other in match.hypotheses
+            if other.reference_index != checked.reference_index]
         checked.timings_ms = dict(match.timings_ms)
         checked.timings_ms["local"] += (time.perf_counter() - started) * 1e3
         checked.searched = match.searched
