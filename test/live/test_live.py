@@ -12,7 +12,7 @@ from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import euler_pose, planar, planar_error, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.references import PASSED_OVER_KEY
-from mf_lpr_ros.core.verification import VOUCHED
+from mf_lpr_ros.core.verification import VOUCHED, VOUCHED_WHERE_PREDICTED
 from mf_lpr_ros.errors import InvalidCloudError, InvalidPoseError, MapParameterMismatch
 from mf_lpr_ros.live.localiser import UNLEVELLED, Localiser, relocalised_pose
 from mf_lpr_ros.live.map_builder import MapBuilder
@@ -216,17 +216,20 @@ def test_a_revisit_that_starts_at_a_look_alike_place_is_published_once_a_closure
     assert not any(look_alike in later.confirms for later in results)
 
 
-@pytest.mark.parametrize("retry, retried", [("revisits", True), ("requests", False)])
+@pytest.mark.parametrize("retry, revisit_check, answer", [
+    ("revisits", False, "retried"), ("requests", False, "weak"),
+    ("requests", True, "predicted")])
 def test_a_stream_searches_again_where_a_weak_match_contradicts_its_revisit(
-        world, retry, retried):
+        world, retry, revisit_check, answer):
     """The revisit's first three matches confirm a closure; then the candidate stage leaves
     the true place out (three candidates, all over 40 m away). Under "revisits"
     the weak match, which the confirmed closure carried along the odometry contradicts, is
     searched again over the wider list and the true place found; a stream under "requests"
-    keeps the weak match."""
+    keeps the weak match, unless the revisit check aligns the scan where the revisit puts
+    it: then that place is reported, and published on the closure's vouch."""
     config = dataclasses.replace(CONFIG, search=dataclasses.replace(
         CONFIG.search, prefilter_top_k=3, prefilter_retry_top_k=64, prefilter_expand_m=0.0,
-        prefilter_retry=retry))
+        prefilter_retry=retry, revisit_check=revisit_check))
     localiser = Localiser(ReferenceMap(config.descriptor), config, mode="loop_closure",
                           exclude_recent_s=10.0)
     ranking = localiser.index.prefilter.top
@@ -250,11 +253,14 @@ def test_a_stream_searches_again_where_a_weak_match_contradicts_its_revisit(
     assert all(r.accepted and r.match.reference_index == i for i, r in enumerate(results[20:23]))
     for index in (23, 24, 25):
         match = results[index].match
-        if retried:
-            assert match.reference_index == index - 20
-            assert np.hypot(*(match.pose[:2] - trajectory[index - 20][:2])) < 0.5
-        else:
+        if answer == "weak":
             assert match.reference_index == 10 and not results[index].accepted
+            continue
+        assert match.reference_index == index - 20
+        assert np.hypot(*(match.pose[:2] - trajectory[index - 20][:2])) < 0.5
+        assert match.revisit_predicted == (answer == "predicted")
+        if answer == "predicted":
+            assert results[index].accepted and results[index].reason == VOUCHED_WHERE_PREDICTED
 
 
 def test_localiser_refuses_a_map_with_other_parameters(world):
