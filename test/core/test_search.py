@@ -353,6 +353,21 @@ def test_a_match_that_contradicts_the_revisit_gives_way_to_the_place_the_revisit
         assert not result.revisit_predicted
 
 
+def test_the_revisit_checks_reference_is_listed_once_among_the_hypotheses(world, synthetic_map):
+    # The true place (reference 0) is a finalist beside a wrong one, and weak under a high
+    # confidence floor; the revisit names that place again: one answer, listed once.
+    points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
+    index = MatchedFilterIndex(synthetic_map, SearchParams(
+        prefilter_top_k=2, prefilter_rescore_k=0, prefilter_retry_top_k=0,
+        prefilter_expand_m=0.0, top_n=2, min_confidence=0.99, min_relative_confidence=0.0))
+    _ranking_prefilter(index, [3, 0, 4, 1, 2])
+    result = index.query(describe_points(points, PARAMS),
+                         revisit_places=lambda match: np.array([[1.3, -0.7, 0.5]]))
+    references = [h.reference_index for h in result.hypotheses]
+    assert result.revisit_predicted and references[0] == 0
+    assert sorted(references) == [0, 3]
+
+
 def test_a_strong_match_is_not_searched_again(world, synthetic_map):
     points, _ = scan_world(world, 1.3, -0.7, 0.5, np.random.default_rng(1))
     index = MatchedFilterIndex(synthetic_map, SearchParams(
