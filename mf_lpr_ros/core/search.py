@@ -421,13 +421,11 @@ class MatchedFilterIndex:
         map's headings are unknown: a place's turn there names no reference's view."""
         started = time.perf_counter()
         search = self.search
-        positions = self.map.poses[:n_refs, :2, 3]
         floor = (1.0 - search.min_distinctiveness) * match.score
         checked: MatchResult | None = None
         for place in np.asarray(places, dtype=np.float64):
-            offsets = positions - place[:2]
-            nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
-            if np.hypot(*offsets[nearest]) > search.max_shift_m:
+            nearest, distance = self._nearest_reference(place[:2], n_refs)
+            if distance > search.max_shift_m:
                 continue
             turn = math.degrees(place[2] - self._planar_poses(nearest)[2])
             peak = self._local(occupancy, nearest, self._snapped_global_angle(turn))
@@ -673,8 +671,7 @@ class MatchedFilterIndex:
             return self._nearest_by_distances(match, peaks, self._nearer_neighbours(
                 occupancy, match, peaks, searched, columns, prepared, headings, volume, n_refs),
                 ranked)
-        offsets = self.map.poses[:n_refs, :2, 3] - match.pose[:2]
-        nearest = int(np.argmin(np.einsum("nc,nc->n", offsets, offsets)))
+        nearest, _ = self._nearest_reference(match.pose[:2], n_refs)
         if nearest == peaks[0].reference:
             return None
         aligned = [peak for peak in peaks if peak.reference == nearest]
@@ -787,6 +784,13 @@ class MatchedFilterIndex:
             return float(self.global_angles[headings[int(located[0][0])]])
         return self._snapped_global_angle(
             math.degrees(match.pose[2] - self._planar_poses(reference)[2]))
+
+    def _nearest_reference(self, position: np.ndarray, n_refs: int) -> tuple[int, float]:
+        """The reference among the first n_refs nearest a map position, and its distance."""
+        offsets = self.map.poses[:n_refs, :2, 3] - position
+        squared = np.einsum("nc,nc->n", offsets, offsets)
+        nearest = int(np.argmin(squared))
+        return nearest, float(np.sqrt(squared[nearest]))
 
     def _snapped_global_angle(self, turn_deg: float) -> float:
         """The global angle nearest turn_deg (their rotation tables are prepared)."""
