@@ -283,9 +283,10 @@ class SearchParams:
     distinct_aligned_rivals: for a match that passes confidence and would fail
         min_distinctiveness, up to this many of the best-scoring references farther than
         distinct_radius_m are aligned (best first, until one disagrees); one whose alignment
-        puts the query within rerank_agreement_m of the match's pose sees the query's own
-        place from farther along the road, the same answer, and is not the other place
-        distinctiveness compares with (0 = off). 3: docs/RESULTS.md, session 17.
+        puts the query within rerank_agreement_m of the match's pose, turned by at most
+        local_rotation_range_deg, sees the query's own place from farther along the road,
+        the same answer, and is not the other place distinctiveness compares with (0 =
+        off). 3: docs/RESULTS.md, session 17; the heading asked since session 55.
     min_local_distinctiveness: a match under min_distinctiveness is distinct all the same when
         its local_distinctiveness (the same comparison at the local stage's resolution,
         MatchResult) reaches this (0 = off). Where the pooled descriptors of a block grid or a
@@ -337,8 +338,10 @@ class SearchParams:
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too
         and is reported as the match when its alignment scores within rerank_margin (a
-        fraction) of the best and implies the same query position within rerank_agreement_m:
-        the keyframe a back end's own ICP overlaps best. The pose, its covariance, the score
+        fraction) of the best and implies the same query pose: within rerank_agreement_m,
+        turned by at most local_rotation_range_deg (a position alone let an alignment turned
+        105 degrees confirm a match on a drifted map; docs/RESULTS.md, session 55): the
+        keyframe a back end's own ICP overlaps best. The pose, its covariance, the score
         and the confidence stay the best alignment's (the constraint is re-expressed in the
         nearer reference's frame), so what is published does not depend on it. 0 = off. The
         agreement decides; the margin only refuses an alignment too weak to mean anything.

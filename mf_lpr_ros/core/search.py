@@ -112,7 +112,7 @@ class MatchResult:
         reference farther than SearchParams.distinct_radius_m from the match's, except, for a
         match that passes min_confidence and would fail min_distinctiveness, the best of
         those (up to distinct_aligned_rivals) whose own alignment puts the query where the
-        match does (within rerank_agreement_m): the same answer seen from farther away.
+        match does (same_place): the same answer seen from farther away.
     local_distinctiveness: the same comparison at the local stage's resolution: 1 - (local
         score of the best other place: the best-scoring one of the global stage, aligned as
         a finalist is, or another place aligned already that scored higher) / (the match's
@@ -173,6 +173,18 @@ def distinct(match: MatchResult, search: SearchParams) -> bool:
     return (match.distinctiveness >= search.min_distinctiveness
             or (search.min_local_distinctiveness > 0
                 and match.local_distinctiveness >= search.min_local_distinctiveness))
+
+
+def same_place(implied: np.ndarray, other: np.ndarray, search: SearchParams
+               ) -> "np.ndarray | bool":
+    """Whether planar poses (..., 3) that alignments imply put the query at the same place
+    and heading (broadcast): within rerank_agreement_m, and turned by at most
+    local_rotation_range_deg (which the local stage would not search). A position alone is
+    not the same answer: an alignment turned half round can land on the match's spot by
+    chance, and where the map has drifted between two visits it does so more often
+    (docs/RESULTS.md, session 55)."""
+    apart, turned_deg = planar_error(implied, other)
+    return (apart <= search.rerank_agreement_m) & (turned_deg <= search.local_rotation_range_deg)
 
 
 def within_tolerance(predicted: np.ndarray, estimate: np.ndarray, search: SearchParams
@@ -615,11 +627,7 @@ class MatchedFilterIndex:
         shift_m, rotation = self._global_alignment(located, headings)
         implied = query_pose_from_alignment(self._planar_poses(references), shift_m,
                                             rotation)
-        apart = np.hypot(*(implied[:, None, :2] - implied[None, :first, :2]).transpose(2, 0, 1))
-        turned = np.abs(wrap_angle(implied[:, None, 2] - implied[None, :first, 2]))
-        same = ((apart <= self.search.rerank_agreement_m)
-                & (turned <= np.radians(self.search.local_rotation_range_deg)))
-        return ~same.any(axis=1)
+        return ~same_place(implied[:, None], implied[None, :first], self.search).any(axis=1)
 
     def _global_alignment(self, located: np.ndarray, headings: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray]:
@@ -662,8 +670,8 @@ class MatchedFilterIndex:
         The best-scoring reference is often not the nearest: a reference a few metres away
         that sees more of the same scene can outscore it. The nearest reference (to the pose
         the match implies) is reported instead when its own alignment scores within
-        rerank_margin of the match's and implies the same query position within
-        rerank_agreement_m: same place, same pose, the nearer view of it (_reported_at).
+        rerank_margin of the match's and implies the same query pose (same_place): the
+        nearer view of the same answer (_reported_at).
         """
         if self.search.rerank_margin <= 0:
             return None
@@ -680,8 +688,7 @@ class MatchedFilterIndex:
             self._coarse_angle(nearest, match, searched, columns, prepared, headings, volume))
         if candidate.score < (1.0 - self.search.rerank_margin) * peaks[0].score:
             return None
-        confirmed = self._result(candidate, ranked)
-        if np.hypot(*(confirmed.pose[:2] - match.pose[:2])) > self.search.rerank_agreement_m:
+        if not same_place(self._result(candidate, ranked).pose, match.pose, self.search):
             return None
         return candidate
 
@@ -989,14 +996,14 @@ class MatchedFilterIndex:
                        match_pose: np.ndarray, ranked: np.ndarray,
                        align: Callable[[int], "_LocalPeak"]) -> np.ndarray:
         """elsewhere less its best-scoring references (up to distinct_aligned_rivals, best
-        first, until one disagrees) whose own alignment puts the query within
-        rerank_agreement_m of the match's pose: a reference farther along the same road that
-        sees the query's place gives the same answer, not a look-alike's."""
+        first, until one disagrees) whose own alignment puts the query where the match does
+        (same_place): a reference farther along the same road that sees the query's place
+        gives the same answer, not a look-alike's."""
         best_first = elsewhere[np.argsort(-scores[elsewhere], kind="stable")]
         same = []
         for position in best_first[: self.search.distinct_aligned_rivals]:
-            implied = self._result(align(int(position)), ranked).pose
-            if np.hypot(*(implied[:2] - match_pose[:2])) > self.search.rerank_agreement_m:
+            if not same_place(self._result(align(int(position)), ranked).pose, match_pose,
+                              self.search):
                 break
             same.append(position)
         return np.setdiff1d(elsewhere, same) if same else elsewhere

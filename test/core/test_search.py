@@ -507,6 +507,32 @@ def test_nearest_place_reranking_reports_the_nearest_reference():
     assert not_nearest(0.0) >= 3
 
 
+def test_a_nearer_view_that_turns_the_query_does_not_confirm_the_match():
+    # A map that drifted between visits, as a SLAM map does before its loop closes: the
+    # nearer views that re-ranking reports on the street, each given a heading 20 degrees off
+    # its view's. Such a reference's own alignment still puts the query within a metre of where
+    # the match does (its shift of under 2 m turns with it), but facing 20 degrees away: not
+    # the same answer, so not reported as the match's nearer view (the constraint
+    # re-expressed in its frame would carry the drift). One may still win on its own score.
+    street, _ = _street()
+    search = SearchParams(rerank_margin=0.9)
+    index = MatchedFilterIndex(street, search)
+    queries = [describe_points(points, PARAMS) for _, points, _ in _queries_along_the_street()]
+    nearer = {}
+    for query_number, query in enumerate(queries):
+        match = index.query(query)
+        if match.scored_reference not in (None, match.reference_index):
+            nearer[query_number] = (match.scored_reference, match.reference_index)
+    assert len(nearer) >= 3
+    turned = {reported for _, reported in nearer.values()}
+    drifted = MatchedFilterIndex(turned_view_map(street, [
+        (view, np.radians(20.0) if view in turned else 0.0, 0.0)
+        for view in range(len(street))]), search)
+    for query_number in nearer:
+        match = drifted.query(queries[query_number])
+        assert match.scored_reference is None or match.reference_index not in turned
+
+
 def _heading_errors(count: int) -> np.ndarray:
     """Headings off by 30-170 degrees each: a map whose yaws are not its views' (BEVPlace's
     rotated copies, references tagged with a position alone)."""

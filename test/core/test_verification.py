@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import turned_view_map
 
 from mf_lpr_ros.core.descriptor import describe_points
 from mf_lpr_ros.core.map_store import ReferenceMap
@@ -654,3 +655,13 @@ def test_a_reference_farther_along_that_puts_the_query_where_the_match_does_is_n
         outcomes[rivals] = (verdict.accepted, match.distinctiveness)
     assert outcomes[0][0] is False and outcomes[0][1] < 0.15
     assert outcomes[3][0] is True and outcomes[3][1] >= 0.15
+    # The farther reference's heading 8 degrees off its view's (a map drifted between the
+    # two): its alignment still lands within a metre of the match's, but turned more than
+    # the local stage searches. Not the same answer: a rival again.
+    drifted = turned_view_map(reference_map, [(0, 0.0, 0.0), (1, np.radians(8.0), 0.0),
+                                              (2, 0.0, 0.0), (3, 0.0, 0.0)])
+    search = SearchParams(min_confidence=0.3, consistency_min_support=0,
+                          min_local_distinctiveness=0.0, distinct_aligned_rivals=3)
+    match = MatchedFilterIndex(drifted, search).query(query)
+    assert match.reference_index in (0, 1) and match.distinctiveness < 0.15
+    assert not MatchVerifier(search, odometry_known=False).verify(match).accepted
