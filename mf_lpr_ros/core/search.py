@@ -475,12 +475,8 @@ class MatchedFilterIndex:
             return True
         if mode != "revisits" or revisit_places is None:
             return False
-        places = revisit_places(weak)
-        if not len(places):
-            return False
-        found = self._reference_positions().query_ball_point(places[:, :2],
-                                                              self.search.max_shift_m)
-        return any(reference < n_refs for near in found for reference in near)
+        return any(self._nearest_reference(place[:2], n_refs)[1] <= self.search.max_shift_m
+                   for place in revisit_places(weak))
 
     def _search(self, occupancy: np.ndarray, n_refs: int, top_k: int) -> MatchResult:
         """The two stages over the prefilter's top_k candidates (every reference when the
