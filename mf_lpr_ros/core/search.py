@@ -789,7 +789,13 @@ class MatchedFilterIndex:
             math.degrees(match.pose[2] - self._planar_poses(reference)[2]))
 
     def _nearest_reference(self, position: np.ndarray, n_refs: int) -> tuple[int, float]:
-        """The reference among the first n_refs nearest a map position, and its distance."""
+        """The reference among the first n_refs nearest a map position, and its distance.
+        From the spatial index: it runs on every query, and a scan over the poses costs
+        11 ms at 250,000 references."""
+        distance, nearest = self._reference_positions().query(position)
+        if nearest < n_refs:
+            return int(nearest), float(distance)
+        # The nearest is not active yet (an evaluation's later scans): the active ones.
         offsets = self.map.poses[:n_refs, :2, 3] - position
         squared = np.einsum("nc,nc->n", offsets, offsets)
         nearest = int(np.argmin(squared))
