@@ -340,6 +340,29 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> np.ndarray:
         len(angles_deg), -1)
 
 
+def quarter_turn_roots(size: int, angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each angle of the set, an angle of the set (its root, by index) and a number of
+    quarter turns k: rotating by the angle is np.rot90(rotated by the root, -k), cell for cell.
+    An angle that is no such turn of an earlier root is its own root (k = 0). So a search that
+    turns a query to a whole circle of headings turns it to a quarter of them and lays the
+    rest out by rot90. The rotation tables themselves are compared, not the angles: in
+    floating point some cells of 45-degree multiples land across a cell edge from where the
+    quarter turn of the root puts them."""
+    angles = np.atleast_1d(np.asarray(angles_deg, dtype=np.float64))
+    sources = _rotation_sources(size, rotation_key(angles)).reshape(-1, size, size)
+    index = {round(float(angle) % 360.0, 9): i for i, angle in enumerate(angles)}
+    roots, turns = np.arange(len(angles)), np.zeros(len(angles), dtype=np.int64)
+    for heading, angle in enumerate(angles):
+        for quarter_turns in (1, 2, 3):
+            root = index.get(round(float(angle - 90.0 * quarter_turns) % 360.0, 9))
+            if (root is not None and root < heading and turns[root] == 0
+                    and np.array_equal(sources[heading],
+                                       np.rot90(sources[root], -quarter_turns))):
+                roots[heading], turns[heading] = root, quarter_turns
+                break
+    return roots, turns
+
+
 def rotation_key(angles_deg: np.ndarray) -> tuple[float, ...]:
     """The key of a set of angles in the cache of rotation tables."""
     return tuple(float(a) for a in np.atleast_1d(angles_deg))

@@ -16,6 +16,8 @@ with a few queries of its own correlates pair by pair instead, from 2-D spectra.
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
@@ -34,9 +36,12 @@ class PreparedQueries:
     their 2-D spectra, for a search that scores pairs of a query and a reference
     (SpectralBank._allowed_scores)."""
 
-    def __init__(self, images) -> None:
+    def __init__(self, images, turned_from: np.ndarray | None = None) -> None:
         self.images = images
         self.n_queries = len(images)
+        # (A, 2): the row each image is a quarter turn of, and the turns (SpectralBank.
+        # prepare_queries); None: every image stands alone.
+        self.turned_from = turned_from
         self.operator = None
         self.plane_spectra = None
 
@@ -136,10 +141,15 @@ class SpectralBank(NumpyArrays):
         """Reference blocks (n, K, H) as the products' right operand (K, H, n), a view."""
         return blocks.transpose(1, 2, 0)
 
-    def prepare_queries(self, queries: np.ndarray, pairs: bool = False) -> PreparedQueries:
+    def prepare_queries(self, queries: np.ndarray, pairs: bool = False,
+                        turned_from: np.ndarray | None = None) -> PreparedQueries:
         """A batch of query images (A, H, W) ready for the searches below; pairs: their 2-D
-        spectra made now, for a search of allowed pairs."""
-        prepared = PreparedQueries(self._from_host(np.asarray(queries, dtype=np.float32)))
+        spectra made now, for a search of allowed pairs. turned_from (A, 2): for each image,
+        the row of an earlier image of the batch it equals turned by np.rot90(that, -k) and k,
+        or (-1, 0): its 2-D spectrum is then laid out from that image's (quarter_turned), not
+        transformed again."""
+        prepared = PreparedQueries(self._from_host(np.asarray(queries, dtype=np.float32)),
+                                   turned_from)
         if pairs:
             self._plane_spectra(prepared)
         return prepared
@@ -307,11 +317,70 @@ class SpectralBank(NumpyArrays):
         """The conjugated 2-D spectra (A, column_length, K) of the prepared queries, made once
         per batch."""
         if prepared.plane_spectra is None:
-            prepared.plane_spectra = self._conjugated_plane_spectra(prepared.images)
+            prepared.plane_spectra = self._conjugated_plane_spectra(prepared.images,
+                                                                    prepared.turned_from)
         return prepared.plane_spectra
 
-    def _conjugated_plane_spectra(self, images: np.ndarray) -> np.ndarray:
-        return sp_fft.rfft2(images, s=(self.column_length, self.fft_length)).conj()
+    def _conjugated_plane_spectra(self, images: np.ndarray,
+                                  turned_from: np.ndarray | None = None) -> np.ndarray:
+        shape = (self.column_length, self.fft_length)
+        if turned_from is None or (turned_from[:, 0] < 0).all():
+            return sp_fft.rfft2(images, s=shape).conj()
+        direct = turned_from[:, 0] < 0
+        spectra = np.empty((len(images), *shape[:1], self.n_freqs), dtype=np.complex64)
+        spectra[direct] = sp_fft.rfft2(images[direct], s=shape).conj()
+        for turns in (1, 2, 3):
+            rows = np.flatnonzero(~direct & (turned_from[:, 1] == turns))
+            if len(rows):
+                spectra[rows] = self.quarter_turned(spectra[turned_from[rows, 0]], turns)
+        return spectra
+
+    def quarter_turned(self, spectra: np.ndarray, turns: int) -> np.ndarray:
+        """The conjugated 2-D spectra (n, L, K) of images turned by np.rot90(image, -turns),
+        from those of the images (_conjugated_plane_spectra), equal up to rounding: on a square
+        transform a turn permutes a spectrum's entries, conjugates those it takes from the half
+        not stored (a real image's spectrum is Hermitian), and shifts their phase by the
+        image's offset from the origin."""
+        if (self.height, self.column_length) != (self.width, self.fft_length):
+            raise ValueError("quarter turns need square images")
+        turns %= 4
+        if turns == 0:
+            return spectra
+        if turns == 2:
+            return self._turn_layouts[2][2] * np.conj(spectra)
+        sources, conjugated, phase = self._turn_layouts[turns]
+        turned = np.take(spectra.reshape(len(spectra), -1), sources, axis=1).reshape(
+            spectra.shape)
+        np.conjugate(turned[:, conjugated], out=turned[:, conjugated])
+        turned *= phase
+        return turned
+
+    @cached_property
+    def _turn_layouts(self) -> dict[int, tuple[np.ndarray | None, slice | None, np.ndarray]]:
+        """For each number of quarter turns: the flat source of every entry (k, l) of the
+        turned spectrum in the stored one, the rows k whose entries are conjugated, and the
+        phase. With L the transform's length, K = L // 2 + 1 and H the image's side: one turn
+        takes row (-l) mod L, column k, conjugating rows k >= K (taken from row l, column
+        L - k); three take row l, column (-k) mod L, conjugating rows 0 < k <= L - K (taken from
+        row (-l) mod L, column k); two conjugate every entry in place. The phases are those of
+        the image moved back to the origin: exp(2 pi i f (H - 1) / L), f = l, k, k + l."""
+        length, n_freqs = self.fft_length, self.n_freqs
+        k, l = np.arange(length)[:, None], np.arange(n_freqs)[None, :]
+
+        def phase(frequencies: np.ndarray) -> np.ndarray:
+            return np.exp(2j * np.pi * frequencies * (self.height - 1) / length).astype(
+                np.complex64)
+
+        one_row = np.where(k < n_freqs, (-l) % length, l)
+        one_col = np.where(k < n_freqs, k, (length - k) % length)
+        three_stored = (k == 0) | (k > length - n_freqs)
+        three_row = np.where(three_stored, l, (-l) % length)
+        three_col = np.where(three_stored, (-k) % length, k)
+        return {1: ((one_row * n_freqs + one_col).ravel(), slice(n_freqs, None),
+                    phase(np.broadcast_to(l, (length, n_freqs)))),
+                2: (None, None, phase(k + l)),
+                3: ((three_row * n_freqs + three_col).ravel(), slice(1, length - n_freqs + 1),
+                    phase(np.broadcast_to(k, (length, n_freqs))))}
 
     def peaks(self, computed: "np.ndarray | AllowedScores",
               columns: np.ndarray | None = None) -> np.ndarray:

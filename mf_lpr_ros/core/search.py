@@ -21,6 +21,7 @@ from mf_lpr_ros.core.descriptor import (
     pool,
     pooled_weights,
     prepare_rotations,
+    quarter_turn_roots,
     rotate_occupancy,
     rotation_key,
     turns_with_sensor,
@@ -280,10 +281,19 @@ class MatchedFilterIndex:
             backend.workers,
         ) if 0 < search.prefilter_top_k < search.prefilter_rescore_k else None
         self._local_correlation = backend.local
-        # Every heading at once from the occupied cells, where the footprint does not turn.
+        # The global headings the query is turned to, and the quarter turns (np.rot90) of
+        # those that give the rest exactly (quarter_turn_roots): where the footprint does not
+        # turn and a quarter turn leaves it as it is, 52 of the 72 headings are laid out, not
+        # turned, and their spectra likewise (SpectralBank.quarter_turned).
+        self._heading_roots, self._heading_turns = (
+            quarter_turn_roots(self.params.size, self.global_angles)
+            if self._footprint_keeps_quarter_turns() else
+            (np.arange(len(self.global_angles)), np.zeros(len(self.global_angles), dtype=int)))
+        self._root_headings = np.flatnonzero(self._heading_turns == 0)
+        # Every root heading at once from the occupied cells, where the footprint does not turn.
         self._turned_pooling = (
-            TurnedPooling(self.params.size, self.global_angles, self.params.pool,
-                          self.params.unoccupied_weight, self.covered)
+            TurnedPooling(self.params.size, self.global_angles[self._root_headings],
+                          self.params.pool, self.params.unoccupied_weight, self.covered)
             if self.params.pool > 1 and (self.covered is None or not turns_with_sensor(
                 self.params)) else None)
         self._workers = backend.workers
@@ -510,7 +520,8 @@ class MatchedFilterIndex:
             # spectra: one thread each.
             prepared, candidates = self._workers.each(
                 lambda: self.bank.prepare_queries(
-                    self._turned_and_pooled(occupancy, headings), pairs=True),
+                    self._turned_and_pooled(occupancy, headings), pairs=True,
+                    turned_from=self._turned_from(headings)),
                 lambda: self.bank.candidate_spectra(columns))
         else:
             prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
@@ -1220,13 +1231,51 @@ class MatchedFilterIndex:
         return np.stack([self._pooled_turns[int(h)] for h in headings])
 
     def _turn_and_pool(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
-        # Every heading: the whole table as it is (a copy of its rows costs ~0.5 ms).
-        only = None if len(headings) == len(self.global_angles) else headings
-        if only is None and self._turned_pooling is not None and self._query_seen is None:
-            return self._turned_pooling(occupancy)
-        return pooled_weights(rotate_occupancy(occupancy, self.global_angles, only),
-                              self.params.unoccupied_weight, self.params.pool,
-                              self._query_covered(self.global_angles, only))
+        roots = np.unique(self._heading_roots[headings])
+        if (len(roots) == len(self._root_headings) and self._turned_pooling is not None
+                and self._query_seen is None):
+            turned = self._turned_pooling(occupancy)
+        else:
+            turned = pooled_weights(rotate_occupancy(occupancy, self.global_angles, roots),
+                                    self.params.unoccupied_weight, self.params.pool,
+                                    self._query_covered(self.global_angles, roots))
+        if np.array_equal(roots, headings):
+            return turned
+        rows = np.searchsorted(roots, self._heading_roots[headings])
+        turns = self._heading_turns[headings]
+        laid_out = np.empty((len(headings), *turned.shape[1:]), dtype=turned.dtype)
+        for quarter_turns in np.unique(turns):
+            chosen = turns == quarter_turns
+            laid_out[chosen] = np.rot90(turned[rows[chosen]], -int(quarter_turns), axes=(1, 2))
+        return laid_out
+
+    def _footprint_keeps_quarter_turns(self) -> bool:
+        """Whether a query's weights turned by a quarter turn are its weights turned cell by
+        cell by np.rot90: the footprint must not turn with the sensor, and a quarter turn must
+        leave it and the window as they are."""
+        if turns_with_sensor(self.params) or self.params.size % self.params.pool:
+            return False
+        return all(np.array_equal(np.rot90(cells), cells)
+                   for cells in (self.covered, self.covered_window) if cells is not None)
+
+    def _turned_from(self, headings: np.ndarray) -> np.ndarray | None:
+        """SpectralBank.prepare_queries' turned_from for the query turned to headings: each
+        heading whose root (quarter_turn_roots) another heading of the batch shares, from the
+        first of them."""
+        if len(self._root_headings) == len(self.global_angles):
+            return None
+        turned_from = np.zeros((len(headings), 2), dtype=np.int64)
+        turned_from[:, 0] = -1
+        first_of_root: dict[int, int] = {}
+        for row, heading in enumerate(headings):
+            root = int(self._heading_roots[heading])
+            if root in first_of_root:
+                first = first_of_root[root]
+                turned_from[row] = (first, (self._heading_turns[heading]
+                                            - self._heading_turns[headings[first]]) % 4)
+            else:
+                first_of_root[root] = row
+        return turned_from
 
     @staticmethod
     def _first_local_angles(n_angles: int) -> np.ndarray:

@@ -12,6 +12,7 @@ from mf_lpr_ros.core.descriptor import (
     height_density,
     pool,
     pooled_weights,
+    quarter_turn_roots,
     rotate_occupancy,
     weighted,
 )
@@ -147,6 +148,30 @@ def test_a_few_angles_of_a_set_turn_as_the_whole_set_does():
     odd = angles + 1.7
     assert np.array_equal(rotate_occupancy(occupancy, odd, only, cached=False),
                           rotate_occupancy(occupancy, odd)[only])
+
+
+@pytest.mark.parametrize("size,step", [(120, 5.0), (100, 10.0), (60, 7.5)])
+def test_a_heading_is_its_roots_rotation_turned_by_rot90_cell_for_cell(size, step):
+    angles = np.arange(0.0, 360.0, step)
+    roots, turns = quarter_turn_roots(size, angles)
+    occupancy = np.random.default_rng(5).random((size, size)) < 0.2
+    turned = rotate_occupancy(occupancy, angles)
+    for heading, (root, quarter_turns) in enumerate(zip(roots, turns)):
+        assert np.array_equal(turned[heading], np.rot90(turned[root], -quarter_turns))
+        assert turns[root] == 0 and (quarter_turns == 0) == (root == heading)
+        if quarter_turns:
+            assert (angles[heading] - angles[root]) % 360.0 == 90.0 * quarter_turns
+    # The first quarter of the circle holds every root but a few 45-degree multiples, whose
+    # tables put some cells across an edge from where rot90 puts them.
+    first_quarter = np.flatnonzero(angles < 90.0)
+    assert set(first_quarter) <= set(np.flatnonzero(turns == 0))
+    assert (turns == 0).sum() <= len(first_quarter) + 4
+
+
+def test_headings_no_quarter_turn_apart_are_each_their_own_root():
+    angles = np.arange(0.0, 360.0, 7.0)
+    roots, turns = quarter_turn_roots(120, angles)
+    assert np.array_equal(roots, np.arange(len(angles))) and not turns.any()
 
 
 def test_density_image_matches_point_descriptor():

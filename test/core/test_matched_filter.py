@@ -238,3 +238,43 @@ def test_allowed_pairs_score_alike_from_candidate_spectra_made_beforehand(rng):
     swapped = candidates[[1, 0, 2, 3, 4]]
     moved, _ = bank.best_of_subset(bank.prepare_queries(queries), subset, 256, allowed, swapped)
     assert not np.allclose(moved[:2], made_here[0][:2])
+
+
+@pytest.mark.parametrize("size,max_shift", [(14, 4), (15, 6), (60, 10)])
+def test_a_quarter_turned_spectrum_is_the_spectrum_of_the_turned_image(rng, size, max_shift):
+    bank = SpectralBank(size, size, max_shift)
+    images = rng.standard_normal((3, size, size)).astype(np.float32)
+    spectra = bank.prepare_queries(images, pairs=True).plane_spectra
+    for turns in (1, 2, 3, 4, -1):
+        turned = np.rot90(images, -turns, axes=(1, 2))
+        np.testing.assert_allclose(bank.quarter_turned(spectra, turns),
+                                   bank.prepare_queries(turned, pairs=True).plane_spectra,
+                                   rtol=0, atol=1e-5 * np.abs(spectra).max())
+    with pytest.raises(ValueError, match="square"):
+        SpectralBank(size, size + 2, max_shift).quarter_turned(spectra, 1)
+
+
+def test_queries_laid_out_from_their_quarter_turns_score_as_those_transformed(rng):
+    bank, references, queries, _ = random_bank(rng)
+    turned = np.concatenate([queries[:2], np.rot90(queries[:2], -1, axes=(1, 2)),
+                             np.rot90(queries[:1], -2, axes=(1, 2)),
+                             np.rot90(queries[1:2], -3, axes=(1, 2)), queries[2:]])
+    turned_from = np.array([[-1, 0], [-1, 0], [0, 1], [1, 1], [0, 2], [1, 3], [-1, 0],
+                            [-1, 0]])
+    subset = np.arange(len(references))
+    allowed = rng.random((len(subset), len(turned))) < 0.6
+    allowed[:, 0] = True
+    transformed = bank.best_of_subset(bank.prepare_queries(turned, pairs=True), subset,
+                                      allowed=allowed)
+    laid_out = bank.best_of_subset(bank.prepare_queries(turned, pairs=True,
+                                                        turned_from=turned_from),
+                                   subset, allowed=allowed)
+    np.testing.assert_allclose(laid_out[0], transformed[0], rtol=1e-5)
+    np.testing.assert_allclose(laid_out[1].scores, transformed[1].scores, rtol=1e-5, atol=1e-5)
+    # Laid out from the wrong image, the scores are another query's.
+    wrong = turned_from.copy()
+    wrong[2] = (1, 1)
+    misplaced = bank.best_of_subset(bank.prepare_queries(turned, pairs=True,
+                                                         turned_from=wrong),
+                                    subset, allowed=allowed)
+    assert not np.allclose(misplaced[1].scores, transformed[1].scores, atol=1e-3)

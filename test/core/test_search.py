@@ -847,3 +847,50 @@ def test_a_map_of_unknown_headings_reports_the_nearest_view_among_the_matchs_nei
         nearest += gap_reported <= 1.01
         beside_finalists += reported.reference_index not in best.candidates[:2]
     assert nearest >= 23 and beside_finalists >= 3
+
+
+@pytest.mark.parametrize("descriptor,search", [
+    (PARAMS, SearchParams(prefilter_top_k=4)),
+    (DescriptorParams(voxel_size=0.4, z_min=-1.2, crop="disc"), SearchParams(prefilter_top_k=4)),
+    (PARAMS, SearchParams(prefilter_top_k=4, query_footprint="observed")),
+    (PARAMS, SearchParams(prefilter_top_k=0)),
+    (DescriptorParams(voxel_size=0.4, z_min=-1.2, field_of_view_deg=120.0),
+     SearchParams(prefilter_top_k=4)),
+])
+def test_headings_laid_out_by_quarter_turns_give_the_matches_of_headings_turned_one_by_one(
+        world, monkeypatch, descriptor, search):
+    # Views of scattered places at headings 0.8 rad apart, queried at others: the candidates'
+    # headings and their opposites fall on every quarter of the circle.
+    rng = np.random.default_rng(4)
+    reference_map = ReferenceMap(descriptor)
+    places = [(0, 0), (25, 0), (0, 25), (-25, -10), (20, 20), (-15, 18), (10, -22), (-20, 5)]
+    for i, (x, y) in enumerate(places):
+        points, pose = scan_world(world, x, y, 0.8 * i, rng)
+        reference_map.append(describe_points(points, descriptor, reference=True, seed_key=i),
+                             pose, float(i), i)
+    queries = [describe_points(scan_world(world, x + 1.1, y - 0.6, yaw, rng)[0], descriptor)
+               for (x, y), yaw in zip(places, [2.9, -1.3, 0.4, 1.9, -2.6, 3.1, -0.2, 1.2])]
+    laid_out = MatchedFilterIndex(reference_map, search)
+    turns_used = set()
+    prepare = laid_out.bank.prepare_queries
+
+    def recording(images, pairs=False, turned_from=None):
+        if turned_from is not None:
+            turns_used.update(turned_from[turned_from[:, 0] >= 0, 1].tolist())
+        return prepare(images, pairs=pairs, turned_from=turned_from)
+
+    monkeypatch.setattr(laid_out.bank, "prepare_queries", recording)
+    monkeypatch.setattr(MatchedFilterIndex, "_footprint_keeps_quarter_turns", lambda self: False)
+    one_by_one = MatchedFilterIndex(reference_map, search)
+    assert len(one_by_one._root_headings) == len(one_by_one.global_angles)
+    symmetric = descriptor.field_of_view_deg >= 360
+    assert (len(laid_out._root_headings) < len(laid_out.global_angles) / 3) == symmetric
+    for query in queries:
+        expected, got = one_by_one.query(query), laid_out.query(query)
+        assert got.reference_index == expected.reference_index
+        np.testing.assert_allclose(got.pose, expected.pose, atol=1e-6)
+        assert got.confidence == pytest.approx(expected.confidence, abs=1e-6)
+        assert got.distinctiveness == pytest.approx(expected.distinctiveness, abs=1e-5)
+    # The global stage's spectra were laid out from a quarter, a half and three quarters of a
+    # turn, where the candidate stage chose headings (an exhaustive search builds no pairs).
+    assert turns_used == ({1, 2, 3} if symmetric and search.prefilter_top_k else set())

@@ -110,7 +110,9 @@ class TorchSpectralBank(TorchArrays, SpectralBank):
         # (K, A, 2S+1, H): window t of every row, t reversed so that di ascends.
         return rows.unfold(2, height, 1).flip(2)
 
-    def _conjugated_plane_spectra(self, images: torch.Tensor) -> torch.Tensor:
+    def _conjugated_plane_spectra(self, images: torch.Tensor,
+                                  turned_from: np.ndarray | None = None) -> torch.Tensor:
+        # Every image transformed: quarter turns are laid out on the numpy path only.
         return torch.fft.rfft2(images, s=(self.column_length, self.fft_length)).conj()
 
     def _expand(self, windows: torch.Tensor, out: None) -> torch.Tensor:
