@@ -1222,8 +1222,8 @@ class MatchedFilterIndex:
                            dtype=np.int64)
         if (2 * len(missing) > len(self.global_angles) and self._turned_pooling is not None
                 and self._query_seen is None):
-            # Every heading from the occupied cells at once costs about what half of them
-            # turned one by one does (TurnedPooling).
+            # Every heading at once (TurnedPooling on the root headings, the rest laid out)
+            # costs about what a third to a half of them turned one by one does.
             missing = np.arange(len(self.global_angles))
         if len(missing):
             self._pooled_turns.update(zip(missing.tolist(),
@@ -1231,6 +1231,8 @@ class MatchedFilterIndex:
         return np.stack([self._pooled_turns[int(h)] for h in headings])
 
     def _turn_and_pool(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
+        """The query's low-resolution weights at global_angles[headings]: their root headings
+        turned (quarter_turn_roots), the others laid out from those by np.rot90."""
         roots = np.unique(self._heading_roots[headings])
         if (len(roots) == len(self._root_headings) and self._turned_pooling is not None
                 and self._query_seen is None):
