@@ -1266,18 +1266,11 @@ class MatchedFilterIndex:
         first of them."""
         if len(self._root_headings) == len(self.global_angles):
             return None
-        turned_from = np.zeros((len(headings), 2), dtype=np.int64)
-        turned_from[:, 0] = -1
-        first_of_root: dict[int, int] = {}
-        for row, heading in enumerate(headings):
-            root = int(self._heading_roots[heading])
-            if root in first_of_root:
-                first = first_of_root[root]
-                turned_from[row] = (first, (self._heading_turns[heading]
-                                            - self._heading_turns[headings[first]]) % 4)
-            else:
-                first_of_root[root] = row
-        return turned_from
+        roots, turns = self._heading_roots[headings], self._heading_turns[headings]
+        _, first_rows, group = np.unique(roots, return_index=True, return_inverse=True)
+        source = first_rows[group]
+        return np.stack([np.where(source == np.arange(len(headings)), -1, source),
+                         (turns - turns[source]) % 4], axis=1)
 
     @staticmethod
     def _first_local_angles(n_angles: int) -> np.ndarray:
