@@ -54,6 +54,18 @@ class NumpyArrays:
         contiguous."""
         return np.moveaxis(values.view(np.float32).reshape(*values.shape, 2), -1, 1)
 
+    @staticmethod
+    def _pair_products(left: np.ndarray, right: np.ndarray, left_of_pair: np.ndarray,
+                       right_of_pair: np.ndarray) -> np.ndarray:
+        """left[left_of_pair[p]] * right[right_of_pair[p]] for each pair p, (P, ...): each
+        product written into the batch as it is made, neither side gathered into a copy of
+        its own first (~20 % of the global stage's pair correlations)."""
+        products = np.empty((len(left_of_pair), *left.shape[1:]),
+                            dtype=np.result_type(left, right))
+        for product, first, second in zip(products, left_of_pair, right_of_pair):
+            np.multiply(left[first], right[second], out=product)
+        return products
+
     def _product(self, left, right):
         """left @ right for a product too large for one worker thread to do alone."""
         return self.workers.matmul(left, right)

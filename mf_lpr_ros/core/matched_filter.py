@@ -16,6 +16,7 @@ with a few queries of its own correlates pair by pair instead, from 2-D spectra.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import cached_property
 
 import numpy as np
@@ -303,8 +304,8 @@ class SpectralBank(NumpyArrays):
             """The pairs of every threads-th chunk, from the worker-th on."""
             for first in starts[worker:: self.workers.threads]:
                 chunk = slice(first, first + _PAIRS_PER_CHUNK)
-                product = (plane[self._index(queries[chunk])]
-                           * candidates[self._index(positions[chunk])])
+                product = self._pair_products(plane, candidates, queries[chunk],
+                                              positions[chunk])
                 # (pair, di, k): the correlation along y within the window, a spectrum along x.
                 along_y = self._along_y @ product
                 scores[chunk] = (self._interleaved(along_y).reshape(-1, 2 * self.n_freqs)
@@ -479,19 +480,31 @@ class LocalCorrelation:
         spectra = self.spectra(images)
         return spectra if self.emphasis is None else spectra * self.emphasis
 
-    @staticmethod
-    def stack(spectra: list[np.ndarray]) -> np.ndarray:
-        """Single images' spectra as one batch."""
-        return np.stack(spectra)
-
     def correlate(self, query_spectra: np.ndarray, reference_spectra: np.ndarray) -> np.ndarray:
         """The windowed correlations (P, 2S+1, 2S+1) of query p with reference p, from their
         spectra (P, ...) (either batch may hold one, for every pair)."""
+        return self._windowed(np.conj(query_spectra) * reference_spectra)
+
+    def correlate_pairs(self, query_spectra: Sequence[np.ndarray], reference_spectra: np.ndarray,
+                        reference_of_pair: np.ndarray) -> np.ndarray:
+        """The windowed correlations (P, 2S+1, 2S+1) of each query spectrum p with
+        reference_spectra[reference_of_pair[p]]. Each product is written straight into the
+        batch the inverse runs on: stacking the queries' spectra and gathering a reference's
+        for each pair first copied both sides, ~40 % of a local stage's correlations."""
+        products = np.empty((len(query_spectra), *reference_spectra.shape[1:]),
+                            dtype=np.result_type(query_spectra[0], reference_spectra))
+        for product, query, reference in zip(products, query_spectra, reference_of_pair):
+            np.conjugate(query, out=product)
+            product *= reference_spectra[reference]
+        return self._windowed(products)
+
+    def _windowed(self, products: np.ndarray) -> np.ndarray:
+        """The correlations within the shift window from their 2-D spectra (P, ...), which it
+        overwrites."""
         rows, cols = self.window % self.shape[0], self.window % self.shape[1]
         # Inverse along y first and keep the window's rows: the inverse along x then runs on
         # 2S+1 rows instead of all (~20 % of the whole correlation at the defaults).
-        window_rows = sp_fft.ifft(np.conj(query_spectra) * reference_spectra, axis=-2,
-                                  overwrite_x=True)[:, rows]
+        window_rows = sp_fft.ifft(products, axis=-2, overwrite_x=True)[:, rows]
         return sp_fft.irfft(window_rows, n=self.shape[1], axis=-1)[:, :, cols].astype(
             np.float32)
 

@@ -1132,11 +1132,10 @@ class MatchedFilterIndex:
             for each pair (job, angle), the query turned to those angles first."""
             self._turn_query(occupancy, [(angle_sets[job], angle_of_pair[job_of_pair == job])
                                          for job in np.unique(job_of_pair)])
-            query_spectra = correlation.stack([
-                self._turned_query[float(angle_sets[job][angle])].spectrum
-                for job, angle in zip(job_of_pair, angle_of_pair)])
-            return correlation.correlate(query_spectra,
-                                         reference_spectra[image_of_job[job_of_pair]])
+            return correlation.correlate_pairs(
+                [self._turned_query[float(angle_sets[job][angle])].spectrum
+                 for job, angle in zip(job_of_pair, angle_of_pair)],
+                reference_spectra, image_of_job[job_of_pair])
 
         surfaces = self._coarse_to_fine(correlate, len(jobs), len(self.local_offsets))
         return [self._local_peak(reference, angles, surface, reference_images[image])

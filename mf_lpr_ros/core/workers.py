@@ -23,9 +23,11 @@ import numpy as np
 
 from mf_lpr_ros.optional import available, require
 
-# Multiply-adds below which a share of a product is not worth handing to another thread (~0.1 ms
-# of one core; the prefilter's product at 1500 references, 1.6 M, runs faster on one).
-_MIN_WORK_PER_THREAD = 2_000_000
+# Multiply-adds below which a share of a product is not worth handing to another thread: the
+# hand-off costs ~0.15-0.2 ms on a 2-core VM, what one core multiplies ~8 M in. The prefilter's
+# product at 1,500 references (5 M) took 0.14 ms on one thread and 0.30 split; two threads
+# first won at ~27 M (docs/RESULTS.md, "Scale", session 57).
+_MIN_WORK_PER_THREAD = 12_000_000
 
 T = TypeVar("T")
 

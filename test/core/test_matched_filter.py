@@ -127,14 +127,21 @@ def test_query_spectra_serve_several_references_and_batches(rng):
     for r, reference in enumerate(references):
         for batch in ([0, 1], [2, 3, 4], [4, 0]):
             np.testing.assert_allclose(
-                correlation.correlate(correlation.stack([spectra[k] for k in batch]),
-                                      reference_spectra[r: r + 1]),
+                correlation.correlate(spectra[batch], reference_spectra[r: r + 1]),
                 correlate_fft2(queries[batch], reference, 6), atol=1e-5)
-    # Pair by pair: query k against reference k % 2, in one batch.
+    # Pair by pair: query k against reference k % 2, in one batch, as the same product.
     pairs = correlation.correlate(spectra, reference_spectra[np.arange(5) % 2])
     for k in range(5):
         np.testing.assert_allclose(pairs[k], correlate_fft2(queries[k: k + 1],
                                                             references[k % 2], 6)[0], atol=1e-5)
+    order = [4, 0, 3, 3, 1]
+    np.testing.assert_array_equal(
+        correlation.correlate_pairs([spectra[k] for k in order], reference_spectra,
+                                    np.array([1, 0, 0, 1, 1])),
+        correlation.correlate(spectra[order], reference_spectra[[1, 0, 0, 1, 1]]))
+    np.testing.assert_allclose(
+        correlation.correlate_pairs([spectra[2]], reference_spectra, np.array([1]))[0],
+        correlate_fft2(queries[2:3], references[1], 6)[0], atol=1e-5)
 
 
 def test_a_sharpened_reference_is_the_reference_convolved_with_the_kernel(rng):

@@ -54,6 +54,12 @@ def test_bank_operations_match_numpy():
     np.testing.assert_allclose(
         correlation.correlate(correlation.spectra(queries), correlation.spectra(references[3:4])),
         correlate_fft2(queries, references[3], 4), atol=1e-4)
+    query_spectra = correlation.spectra(queries)
+    np.testing.assert_allclose(
+        correlation.correlate_pairs([query_spectra[0], query_spectra[1]],
+                                    correlation.spectra(references[2:4]), np.array([1, 0])),
+        np.stack([correlate_fft2(queries[0:1], references[3], 4)[0],
+                  correlate_fft2(queries[1:2], references[2], 4)[0]]), atol=1e-4)
     sharpened = torch_backend.TorchLocalCorrelation(references.shape[1:], 4, sharpening=0.125)
     on_host = LocalCorrelation(references.shape[1:], 4, sharpening=0.125)
     np.testing.assert_allclose(

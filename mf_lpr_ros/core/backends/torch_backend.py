@@ -9,6 +9,8 @@ torch (or "auto" finds a CUDA device).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -35,6 +37,10 @@ class TorchArrays:
     @staticmethod
     def _product(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
         return left @ right
+
+    def _pair_products(self, left: torch.Tensor, right: torch.Tensor,
+                       left_of_pair: np.ndarray, right_of_pair: np.ndarray) -> torch.Tensor:
+        return left[self._index(left_of_pair)] * right[self._index(right_of_pair)]
 
     @staticmethod
     def _to_host(tensor: torch.Tensor) -> np.ndarray:
@@ -152,9 +158,11 @@ class TorchLocalCorrelation(LocalCorrelation):
         return torch.fft.rfft2(torch.from_numpy(np.asarray(images, np.float32)).to(self.device),
                                s=self.shape)
 
-    @staticmethod
-    def stack(spectra: list[torch.Tensor]) -> torch.Tensor:
-        return torch.stack(spectra)
+    def correlate_pairs(self, query_spectra: Sequence[torch.Tensor],
+                        reference_spectra: torch.Tensor, reference_of_pair: np.ndarray
+                        ) -> np.ndarray:
+        pairs = torch.from_numpy(np.asarray(reference_of_pair, dtype=np.int64)).to(self.device)
+        return self.correlate(torch.stack(list(query_spectra)), reference_spectra[pairs])
 
     def correlate(self, query_spectra: torch.Tensor, reference_spectra: torch.Tensor
                   ) -> np.ndarray:
