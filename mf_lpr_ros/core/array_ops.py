@@ -59,7 +59,8 @@ class NumpyArrays:
                        right_of_pair: np.ndarray) -> np.ndarray:
         """left[left_of_pair[p]] * right[right_of_pair[p]] for each pair p, (P, ...): each
         product written into the batch as it is made, neither side gathered into a copy of
-        its own first (~20 % of the global stage's pair correlations)."""
+        its own first (256 pairs' correlations 2.4 -> 2.0 ms, docs/RESULTS.md, "Scale",
+        session 57)."""
         products = np.empty((len(left_of_pair), *left.shape[1:]),
                             dtype=np.result_type(left, right))
         for product, first, second in zip(products, left_of_pair, right_of_pair):
