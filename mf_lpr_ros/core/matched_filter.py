@@ -23,7 +23,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
-from mf_lpr_ros.core.array_ops import NumpyArrays, half_spectrum_weights
+from mf_lpr_ros.core.array_ops import NumpyArrays, half_spectrum_weights, pair_products
 from mf_lpr_ros.core.workers import Workers
 
 # Pairs correlated at once by _allowed_scores: their spectra stay in a core's cache from product
@@ -488,16 +488,11 @@ class LocalCorrelation:
     def correlate_pairs(self, query_spectra: Sequence[np.ndarray], reference_spectra: np.ndarray,
                         reference_of_pair: np.ndarray) -> np.ndarray:
         """The windowed correlations (P, 2S+1, 2S+1) of each query spectrum p with
-        reference_spectra[reference_of_pair[p]]. Each product is written straight into the
-        batch the inverse runs on: stacking the queries' spectra and gathering a reference's
-        for each pair first copied both sides (~0.3 ms of a query's 15 correlations,
-        docs/RESULTS.md, "Scale", session 57)."""
-        products = np.empty((len(query_spectra), *reference_spectra.shape[1:]),
-                            dtype=np.result_type(query_spectra[0], reference_spectra))
-        for product, query, reference in zip(products, query_spectra, reference_of_pair):
-            np.conjugate(query, out=product)
-            product *= reference_spectra[reference]
-        return self._windowed(products)
+        reference_spectra[reference_of_pair[p]], each conjugated product written straight into
+        the batch the inverse runs on (array_ops.pair_products)."""
+        return self._windowed(pair_products(query_spectra, reference_spectra,
+                                            range(len(query_spectra)), reference_of_pair,
+                                            conjugate_left=True))
 
     def _windowed(self, products: np.ndarray) -> np.ndarray:
         """The correlations within the shift window from their 2-D spectra (P, ...), which it
