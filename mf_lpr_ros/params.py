@@ -334,6 +334,17 @@ class SearchParams:
         vouches. Tuning suite 0.9019 -> 0.9055 (simulated handheld sensor at `default`:
         recall published 0.277 -> 0.537), none false; the `sensors` suite and slam-eval on
         drifted KITTI 00 unchanged (docs/RESULTS.md, session 52).
+    odometry_drift, odometry_yaw_drift_deg_per_m: the odometry's error (one standard deviation)
+        per metre of travel, in position (a fraction of the distance) and in heading. They set
+        no test; they widen the covariance of a weak match published where the vouching
+        closures put it: that pose is a closure's, carried along the odometry, so its
+        covariance is the closure's own, swung by the closure's heading error over the
+        distance carried, plus the odometry's drift over that distance, plus the spread of
+        the closures' poses when several vouch and the gap between the match's own pose and
+        the carried one, and never narrower than the match's own (core/verification.py). 1 %
+        and 0.5 degrees per 100 m: the drift the vouch window was sized for (above); a wheel
+        odometry may need several times that. Published closures' covariances against their
+        errors: docs/RESULTS.md, session 58.
     rerank_margin, rerank_agreement_m: nearest-place re-ranking. The best-scoring reference
         is often not the nearest one (a reference a few metres off can see more of the same
         scene); after the local stage, the reference nearest the matched pose is aligned too
@@ -429,6 +440,8 @@ class SearchParams:
     consistency_tolerance_deg: float = 5.0
     consistency_vouch: bool = True
     consistency_vouch_window_m: float = 60.0
+    odometry_drift: float = 0.01
+    odometry_yaw_drift_deg_per_m: float = 0.005
     rerank_margin: float = 0.9
     rerank_agreement_m: float = 2.0
     map_headings: str = "known"
@@ -490,6 +503,8 @@ class SearchParams:
         for name in ("consistency_window_m", "consistency_vouch_window_m",
                      "consistency_tolerance_m", "consistency_tolerance_deg"):
             require_parameter(getattr(self, name) > 0, name, "> 0", getattr(self, name))
+        for name in ("odometry_drift", "odometry_yaw_drift_deg_per_m"):
+            require_parameter(getattr(self, name) >= 0, name, ">= 0", getattr(self, name))
         require_parameter(0.0 <= self.rerank_margin < 1.0, "rerank_margin", "in [0, 1)",
                  self.rerank_margin)
         require_parameter(self.query_footprint in ("auto", "window", "observed"),

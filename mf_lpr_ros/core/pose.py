@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.linalg
 
 from mf_lpr_ros.errors import InvalidPoseError
 
@@ -198,6 +199,33 @@ def rotate_covariance(covariance: np.ndarray, yaw: float) -> np.ndarray:
     rotation = np.eye(3)
     rotation[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
     return rotation @ covariance @ rotation.T
+
+
+def enclosing_covariance(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """A covariance whose ellipsoid contains both first's and second's (n x n, positive
+    definite): in the basis where both are diagonal, the larger of the two along each axis.
+    Their sum where that basis does not exist (either singular)."""
+    first, second = np.asarray(first, dtype=np.float64), np.asarray(second, dtype=np.float64)
+    try:
+        ratios, basis = scipy.linalg.eigh(first, second)
+    except np.linalg.LinAlgError:
+        return first + second
+    # basis.T @ second @ basis = I, basis.T @ first @ basis = diag(ratios).
+    back = np.linalg.inv(basis)
+    enclosing = back.T @ np.diag(np.maximum(ratios, 1.0)) @ back
+    return (enclosing + enclosing.T) / 2
+
+
+def composed_covariance(first: np.ndarray, first_covariance: np.ndarray, composed: np.ndarray,
+                        second_covariance: np.ndarray) -> np.ndarray:
+    """The covariance (3x3, over x, y, yaw in the common frame) of composed = first (+) second,
+    from first's covariance and second's (expressed in first's frame), the two independent,
+    to first order: an error in first's heading swings composed about first's position."""
+    first, composed = np.asarray(first, dtype=np.float64), np.asarray(composed, dtype=np.float64)
+    swing = np.eye(3)
+    swing[:2, 2] = [-(composed[1] - first[1]), composed[0] - first[0]]
+    return (swing @ np.asarray(first_covariance, dtype=np.float64) @ swing.T
+            + rotate_covariance(np.asarray(second_covariance, dtype=np.float64), first[2]))
 
 
 def level_points(points: np.ndarray, orientation: np.ndarray) -> np.ndarray:

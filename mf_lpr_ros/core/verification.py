@@ -35,7 +35,10 @@ as alike, support whether the match repeats; once odometry and an independently 
 closure put the query there, a match that lands within consistency_tolerance_m of where they
 predict is that place, however little of the place the query saw. A weak match (under
 min_confidence) is published where the vouching closures put the query, not where its own
-weak peak does: it names the place, they give the pose. Independently: a closure that a
+weak peak does: it names the place, they give the pose, and its covariance: theirs, carried
+along the odometry with the odometry's drift (search.odometry_drift; a carried pose is no
+better than the closure it carries), widened by the gap between the two poses and never
+narrower than its own peak's (take_pose). Independently: a closure that a
 candidate's own agreement helped confirm does not vouch for it. Only confirmed candidates
 vouch, never a vouched match, so agreement cannot creep along a road from one vouched match to
 the next: every match of a revisit is held to where the one closure, carried along the
@@ -55,8 +58,12 @@ import numpy as np
 from mf_lpr_ros.core.pose import (
     alignment_from_poses,
     compose_planar,
+    composed_covariance,
+    enclosing_covariance,
     mean_planar,
     relative_planar,
+    rotate_covariance,
+    wrap_angle,
 )
 from mf_lpr_ros.core.search import MatchResult, distinct, passes_confidence, within_tolerance
 from mf_lpr_ros.errors import ConfigError
@@ -121,8 +128,12 @@ class _Candidate:
     # candidates: links would keep every candidate of a long run alive).
     serial: int = -1
     linked: set[int] = field(default_factory=set)
-    # Called with the pose its vouchers put it at, when one vouches for it.
-    on_vouch: Callable[[np.ndarray], None] | None = None
+    # Called with the pose its vouchers put it at and that pose's covariance, when one vouches
+    # for it.
+    on_vouch: Callable[[np.ndarray, np.ndarray], None] | None = None
+    # Its estimate's covariance (3x3, map frame): a confirmed candidate lends it, carried, to
+    # the matches it vouches for.
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     # A confirmed candidate's reach: the travel of the latest match it vouched for, or its
     # own; it vouches while the robot is within the vouch window of its reach.
     reach_m: float = -math.inf
@@ -151,13 +162,46 @@ def _carried(earlier, later) -> np.ndarray:
     return _carry(earlier_estimate, earlier_odometry, _stacked(later)[0])
 
 
-def take_pose(match: MatchResult, pose: np.ndarray) -> None:
+def take_pose(match: MatchResult, pose: np.ndarray, covariance: np.ndarray) -> None:
     """Move match to pose (planar, map frame) in place, its reference kept: its alignment to
-    that reference follows (as ICP refinement moves it, core/refine.py)."""
+    that reference follows (as ICP refinement moves it, core/refine.py). Its covariance (and
+    the alignment's) becomes the given one (3x3, map frame) widened along the gap between its
+    own estimate and pose (two estimates of one pose that disagree say how far off either
+    may be, whatever their covariances claim), and never narrower than its own: a carried
+    pose is as good as the closures it carries, and their covariances can claim too much
+    (docs/RESULTS.md, session 58)."""
     reference_pose = compose_planar(
         match.pose, relative_planar([*match.shift_m, match.rotation_rad], np.zeros(3)))
-    match.pose = np.asarray(pose, dtype=np.float64)
+    pose = np.asarray(pose, dtype=np.float64)
+    gap = match.pose - pose
+    gap[2] = wrap_angle(gap[2])
+    match.pose = pose
     match.shift_m, match.rotation_rad = alignment_from_poses(reference_pose, match.pose)
+    widened = np.asarray(covariance, dtype=np.float64) + np.outer(gap, gap)
+    match.covariance = enclosing_covariance(match.covariance, widened)
+    match.relative_covariance = rotate_covariance(match.covariance, -float(reference_pose[2]))
+
+
+def carried_covariance(anchor: "_Candidate", carried: np.ndarray, to_travelled_m: float,
+                       search: SearchParams) -> np.ndarray:
+    """The covariance (3x3, map frame) of anchor's estimate carried along the odometry to the
+    pose carried (_carry), at to_travelled_m of travel: the anchor's own, swung by its heading
+    error about its position, plus the odometry's drift over the travel between the two
+    (search.odometry_drift, odometry_yaw_drift_deg_per_m)."""
+    travel_m = abs(to_travelled_m - anchor.travelled_m)
+    drift = np.diag([(search.odometry_drift * travel_m) ** 2] * 2
+                    + [math.radians(search.odometry_yaw_drift_deg_per_m * travel_m) ** 2])
+    return composed_covariance(anchor.estimate, anchor.covariance, carried, drift)
+
+
+def pooled_covariance(places: np.ndarray, covariances: list[np.ndarray]) -> np.ndarray:
+    """The covariance of the mean (mean_planar) of several vouchers' places: their covariances'
+    mean (one revisit's closures share their errors, so averaging them narrows nothing) plus
+    the places' own spread about their mean."""
+    places = np.asarray(places, dtype=np.float64)
+    deviation = places - mean_planar(places)
+    deviation[:, 2] = wrap_angle(deviation[:, 2])
+    return np.mean(covariances, axis=0) + deviation.T @ deviation / len(places)
 
 
 class OdometryConsistency:
@@ -215,18 +259,22 @@ class OdometryConsistency:
         """Whether each predicted pose lies within the consistency tolerances of estimate."""
         return within_tolerance(predicted, estimate, self.search)
 
-    def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None
-                ) -> tuple[int, dict[Any, str], bool]:
+    def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,
+                covariance: np.ndarray | None = None) -> tuple[int, dict[Any, str], bool]:
         """(earlier candidates agreeing with this one, the earlier matches that this
         agreement confirms or, once a candidate is confirmed, that it vouches for (key ->
         CONFIRMED_LATER or VOUCHED), whether a confirmed candidate vouches for this one that
-        lacks support); the current one is then remembered as a candidate."""
+        lacks support); the current one is then remembered as a candidate. covariance: the
+        estimate's (3x3, map frame), lent to the matches it vouches for once confirmed; None:
+        exact."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
         self._serials += 1
         current = _Candidate(odometry, estimate, self.travelled_m, key, 0, False,
                              serial=self._serials)
+        if covariance is not None:
+            current.covariance = np.asarray(covariance, dtype=np.float64)
         agree = (self._agreeing(self._candidates, current, self.min_separation_m)
                  if self._candidates else [])
         agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
@@ -288,7 +336,8 @@ class OdometryConsistency:
                 anchor.extend_reach(match.travelled_m)
                 vouched.append(match.key)
                 if match.on_vouch is not None:
-                    match.on_vouch(place)
+                    match.on_vouch(place, carried_covariance(anchor, place, match.travelled_m,
+                                                             self.search))
         self._awaiting_vouch = deque((m for m in self._awaiting_vouch if not m.published),
                                      maxlen=MATCHES_KEPT)
         return vouched
@@ -296,7 +345,8 @@ class OdometryConsistency:
     def _vouched_now(self, match: _Candidate) -> bool:
         """Whether a confirmed candidate in reach agrees with match and was confirmed
         without it (match did not count for it); if so, its reach moves to match, and
-        match.on_vouch hears the mean of the poses where those that agree put it."""
+        match.on_vouch hears the mean of the poses where those that agree put it, and that
+        mean's covariance (pooled_covariance)."""
         anchors = [a for a in self._anchors if a.serial not in match.linked]
         if not anchors:
             return False
@@ -308,15 +358,19 @@ class OdometryConsistency:
             if agrees:
                 anchor.extend_reach(match.travelled_m)
         if match.on_vouch is not None:
-            match.on_vouch(mean_planar(places[agree]))
+            vouchers = [anchor for anchor, agrees in zip(anchors, agree) if agrees]
+            match.on_vouch(mean_planar(places[agree]), pooled_covariance(
+                places[agree], [carried_covariance(anchor, place, match.travelled_m, self.search)
+                                for anchor, place in zip(vouchers, places[agree])]))
         return True
 
     def vouched(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,
-                on_vouch: Callable[[np.ndarray], None] | None = None) -> bool:
+                on_vouch: Callable[[np.ndarray, np.ndarray], None] | None = None) -> bool:
         """Whether a confirmed candidate in reach agrees with this match; when none
         does, it is kept in case a later confirmed candidate will. on_vouch: called, now or
         then, with the pose at which the vouching closures, carried along the odometry, put
-        the query (their mean)."""
+        the query (their mean), and its covariance (3x3, map frame): the closures' own,
+        carried (carried_covariance), pooled (pooled_covariance)."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         match = _Candidate(odometry, estimate, self.travelled_m, key, -1, False,
@@ -407,7 +461,8 @@ class MatchVerifier:
         if reasons:
             # A weak peak places the query less precisely than the vouching closures do
             # (docs/RESULTS.md, sessions 20 and 51): a weak match takes their pose.
-            on_vouch = (lambda pose: take_pose(match, pose)) if weak else None
+            on_vouch = (lambda pose, covariance: take_pose(match, pose, covariance)) if weak \
+                else None
             if self.consistency.vouched(odometry, match.pose, key, on_vouch):
                 return Verdict(True, VOUCHED_WHERE_PREDICTED if match.revisit_predicted
                                else VOUCHED, fitness)
@@ -415,7 +470,8 @@ class MatchVerifier:
                            awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
-        support, confirms, vouched = self.consistency.support(odometry, match.pose, key)
+        support, confirms, vouched = self.consistency.support(odometry, match.pose, key,
+                                                              match.covariance)
         if vouched:
             return Verdict(True, VOUCHED, fitness, support, confirms)
         if support < search.consistency_min_support:

@@ -37,10 +37,12 @@ class Retrieval:
     none), the query's estimated (x, y, yaw), a confidence, candidates best first, and whether
     the method would publish it as a loop closure at its defaults; confirms: earlier queries
     (their order among this method's queries) it would now publish, confirmed late, each with
-    the reason it is published for and the pose it is published at (a weak match vouched for
-    takes the pose of the closure that vouches, core/verification.py);
-    distinctiveness, place_similarity and reason: see QueryRecord; searched: the references
-    its candidate stage kept for the full comparison (None: the method does not say)."""
+    the reason it is published for, the pose it is published at and that pose's (x, y)
+    covariance (a weak match vouched for takes the pose of the closure that vouches, and its
+    covariance, core/verification.py); distinctiveness, place_similarity and reason: see
+    QueryRecord; searched: the references its candidate stage kept for the full comparison
+    (None: the method does not say); position_covariance: the (x, y) covariance (2x2, map
+    frame) the method publishes with pose (None: it gives none)."""
 
     reference: int
     pose: np.ndarray
@@ -49,12 +51,13 @@ class Retrieval:
     ms_global: float
     ms_local: float = 0.0
     published: bool = False
-    confirms: dict[int, tuple[str, np.ndarray]] = field(default_factory=dict)
+    confirms: dict[int, tuple[str, np.ndarray, np.ndarray | None]] = field(default_factory=dict)
     distinctiveness: float = math.nan
     local_distinctiveness: float = math.nan
     reason: str = ""
     searched: np.ndarray | None = None
     place_similarity: float = math.nan
+    position_covariance: np.ndarray | None = None
 
 
 class MatchedFilterMethod:
@@ -110,14 +113,16 @@ class MatchedFilterMethod:
             while len(self._may_be_confirmed) > MAY_BE_CONFIRMED_KEPT:
                 self._may_be_confirmed.popitem(last=False)
         self._queries += 1
-        confirms = {earlier: (reason, self._may_be_confirmed.pop(earlier).pose)
-                    for earlier, reason in verdict.confirms.items()}
+        confirms = {}
+        for earlier, reason in verdict.confirms.items():
+            confirmed = self._may_be_confirmed.pop(earlier)
+            confirms[earlier] = (reason, confirmed.pose, confirmed.covariance[:2, :2])
         return Retrieval(match.reference_index, match.pose, match.confidence, match.candidates,
                          match.timings_ms["global"], match.timings_ms["local"], verdict.accepted,
                          confirms, match.distinctiveness, match.local_distinctiveness,
                          verdict.reason,
                          np.arange(n_active) if match.searched is None else match.searched,
-                         match.place_similarity)
+                         match.place_similarity, match.covariance[:2, :2])
 
 
 class _IndependentQueries:

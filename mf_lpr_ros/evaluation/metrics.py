@@ -4,7 +4,7 @@ records."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,8 @@ class QueryRecord:
     a run. searched_nearest_m: the nearest to the truth of the references the method's
     candidate stage kept for the full comparison; NaN when the method does not say.
     place_similarity: MF-LPR's yardstick for a match under min_confidence (NaN elsewhere).
+    position_covariance: the (x, y) covariance published with estimate, as [xx, xy, yy] (NaN
+    for methods that give none).
     """
 
     query_index: int
@@ -52,12 +54,14 @@ class QueryRecord:
     reason: str = ""
     searched_nearest_m: float = math.nan
     place_similarity: float = math.nan
+    position_covariance: list[float] = field(default_factory=lambda: [math.nan] * 3)
 
 
 # The figures that score an estimated pose, not a retrieval: NaN where poses cannot be scored.
 POSE_FIGURES = ("recall_at_1_corrected", "rte_mean_m", "rte_std_m", "rre_mean_deg",
                 "rre_std_deg", "success_rate", "closures_false", "precision_published",
-                "recall_published", "recall_at_100_precision")
+                "recall_published", "recall_at_100_precision", "published_d2_median",
+                "published_d2_p90")
 
 
 def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int, *,
@@ -82,7 +86,11 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
     tolerance from the truth (the constraint a pose graph would get is wrong);
     precision_published; recall_published, the positive queries with a correct published
     closure; recall_at_100_precision, the largest recall over confidence thresholds with no
-    false match above the threshold (before verification).
+    false match above the threshold (before verification). published_d2_median /
+    published_d2_p90: how honest the published covariances are, the median and 90th
+    percentile over published closures of d2, the squared Mahalanobis distance of the
+    position error under its published (x, y) covariance (published_d2); were the
+    covariances exact, 1.39 and 4.61. NaN for methods that publish none.
 
     poses_scored False (Protocol.headings_known): POSE_FIGURES are NaN, and so is the
     corrected curve of recall_vs_threshold.
@@ -150,6 +158,7 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
         if n_published else float("nan"),
         "recall_published": rate(published & closure_correct),
         "recall_at_100_precision": recall_at_full_precision(confidence, closure_correct, positive),
+        **_published_d2(published_d2(records)[published]),
         "recall_vs_threshold": {
             "threshold_m": thresholds.tolist(),
             "retrieval": [rate(retrieved_distance <= t) for t in thresholds],
@@ -164,6 +173,27 @@ def summarise(records: list[QueryRecord], tolerance_m: float, n_references: int,
         summary.update(dict.fromkeys(POSE_FIGURES, math.nan))
         summary["recall_vs_threshold"]["corrected"] = [math.nan] * len(thresholds)
     return summary
+
+
+def published_d2(records: list[QueryRecord]) -> np.ndarray:
+    """Per record, the squared Mahalanobis distance of its position error (estimate - truth)
+    under its published (x, y) covariance; NaN where either is missing or the covariance is
+    singular."""
+    d2 = np.full(len(records), np.nan)
+    for row, record in enumerate(records):
+        xx, xy, yy = record.position_covariance
+        error = np.subtract(record.estimate[:2], record.truth[:2])
+        determinant = xx * yy - xy * xy
+        if np.isfinite(error).all() and determinant > 0:
+            d2[row] = (yy * error[0] ** 2 - 2 * xy * error[0] * error[1]
+                       + xx * error[1] ** 2) / determinant
+    return d2
+
+
+def _published_d2(d2: np.ndarray) -> dict[str, float]:
+    known = d2[np.isfinite(d2)]
+    return {"published_d2_median": float(np.median(known)) if len(known) else math.nan,
+            "published_d2_p90": float(np.percentile(known, 90)) if len(known) else math.nan}
 
 
 def recall_at_full_precision(confidence: np.ndarray, true_match: np.ndarray,

@@ -317,14 +317,23 @@ def run_protocol(method, reference: Sequence, selection: Selection, *,
             reason=retrieval.reason,
             searched_nearest_m=_nearest_of(
                 distances, None if retrieval.searched is None else in_map[retrieval.searched]),
-            place_similarity=float(retrieval.place_similarity)))
-        for earlier, (reason, pose) in retrieval.confirms.items():
+            place_similarity=float(retrieval.place_similarity),
+            position_covariance=_flat_covariance(retrieval.position_covariance)))
+        for earlier, (reason, pose, covariance) in retrieval.confirms.items():
             confirmed = records[searched_records[earlier]]
             confirmed.published = True
             confirmed.reason = reason
             confirmed.estimate = np.asarray(pose, dtype=float).tolist()
             confirmed.rte_m, confirmed.rre_deg = planar_error(pose, confirmed.truth)
+            confirmed.position_covariance = _flat_covariance(covariance)
     return ProtocolRun(records, selection.references[~described].tolist())
+
+
+def _flat_covariance(covariance: np.ndarray | None) -> list[float]:
+    """QueryRecord.position_covariance of a 2x2 covariance (None: NaN)."""
+    if covariance is None:
+        return [math.nan] * 3
+    return [float(covariance[0, 0]), float(covariance[0, 1]), float(covariance[1, 1])]
 
 
 def _not_searched(query_index: int, stamp: float, truth: np.ndarray, distances: np.ndarray,

@@ -357,6 +357,96 @@ def test_a_vouched_weak_match_takes_the_pose_where_the_closures_that_vouch_put_i
     assert verdicts[9].reason == VOUCHED and np.allclose(matches[9].pose, truth[9] + off)
 
 
+CLOSURE_COVARIANCE = np.diag([0.2 ** 2, 0.2 ** 2, math.radians(0.3) ** 2])
+
+
+def _carried_by_hand(anchor_pose: np.ndarray, carried_pose: np.ndarray, travel_m: float,
+                     search: SearchParams) -> np.ndarray:
+    """A closure's covariance carried along the odometry, its swing taken by finite
+    differences of compose_planar: the anchor's heading nudged moves the carried pose."""
+    offset = relative_planar(anchor_pose, carried_pose)
+    swing = np.eye(3)
+    for axis in range(3):
+        nudge = np.zeros(3)
+        nudge[axis] = 1e-6
+        swing[:, axis] = wrap_angle(compose_planar(anchor_pose + nudge, offset)
+                                    - carried_pose) / 1e-6
+    drift = np.diag([(search.odometry_drift * travel_m) ** 2] * 2
+                    + [math.radians(search.odometry_yaw_drift_deg_per_m * travel_m) ** 2])
+    return swing @ CLOSURE_COVARIANCE @ swing.T + drift
+
+
+def _dominates(larger: np.ndarray, smaller: np.ndarray) -> bool:
+    return bool(np.linalg.eigvalsh(larger - smaller).min() > -1e-9)
+
+
+def _gap(own: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    gap = np.asarray(own, float) - moved
+    gap[2] = wrap_angle(gap[2])
+    return np.outer(gap, gap)
+
+
+@pytest.mark.parametrize("drift", [0.01, 0.05])
+def test_a_vouched_weak_match_carries_the_closures_covariance_and_the_odometrys_drift(drift):
+    """A weak match moved to where the vouching closures put it takes their covariance too:
+    each closure's own, swung by its heading error over the distance carried, plus the
+    odometry's drift over that travel, averaged over the vouchers, plus their places' spread,
+    plus the gap between its own estimate and where it is moved (here 0.7 m: the two
+    disagree that much). Never narrower than its own peak's: 8's (falsely sharp) gives way,
+    1's (wide across the road) stays where it is wider. The alignment's covariance follows in
+    the reference's frame; a confident but indistinct match keeps its own."""
+    search = SearchParams(consistency_min_support=2, odometry_drift=drift,
+                          odometry_yaw_drift_deg_per_m=0.02)
+    verifier = MatchVerifier(search)
+    step_m = 1.5
+    odometry = _drive(12, step_m)
+    truth = compose_planar(MAP_T_ODOM, odometry)
+    doubts = {1: "weak", 8: "weak", 9: "indistinct"}
+    sharp, across = np.diag([1e-4, 1e-4, 1e-6]), np.diag([1e-4, 9.0, 1e-6])
+    matches, own = [], {}
+    for index, (odo, pose) in enumerate(zip(odometry, truth)):
+        estimate = pose + ([0.7, 0.0, 0.02] if index in doubts else [0.2 * (-1) ** index, -0.1,
+                                                                      0.01])
+        own[index] = estimate
+        match = _match(estimate, **DOUBTS.get(doubts.get(index), {}))
+        match.covariance = {1: across, 8: sharp, 9: sharp}.get(index, CLOSURE_COVARIANCE).copy()
+        reference_pose = pose + [3.0, 1.0, 0.2]
+        relative = relative_planar(reference_pose, estimate)
+        match.shift_m, match.rotation_rad = relative[:2], float(relative[2])
+        matches.append(match)
+        verifier.verify(match, odo, key=index)
+
+    anchors = [0, 2, 3, 4, 5, 6, 7]
+    places = compose_planar(np.stack([matches[a].pose for a in anchors]),
+                            relative_planar(odometry[anchors], odometry[8]))
+    deviation = places - mean_planar(places)
+    expected = (np.mean([_carried_by_hand(matches[a].pose, place, step_m * (8 - a), search)
+                         for a, place in zip(anchors, places)], axis=0)
+                + deviation.T @ deviation / len(anchors) + _gap(own[8], matches[8].pose))
+    assert np.allclose(matches[8].covariance, expected, rtol=1e-4, atol=1e-10)
+    # Vouched for late by one of the closures confirmed then, from its own place, and as wide
+    # as its own peak's across the road.
+    late = [_carried_by_hand(matches[a].pose, matches[1].pose, step_m * abs(a - 1), search)
+            + _gap(own[1], matches[1].pose) for a in (0, 2, 3)]
+    assert any(_dominates(matches[1].covariance, carried) and _dominates(carried + across,
+                                                                         matches[1].covariance)
+               for carried in late)
+    assert _dominates(matches[1].covariance, across)
+    for index in (1, 8):
+        covariance = matches[index].covariance
+        assert np.all(np.linalg.eigvalsh(covariance[:2, :2] - CLOSURE_COVARIANCE[:2, :2]) > 0)
+        reference_yaw = truth[index][2] + 0.2
+        cos, sin = math.cos(reference_yaw), math.sin(reference_yaw)
+        turn = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+        assert np.allclose(turn @ matches[index].relative_covariance @ turn.T, covariance)
+    # 8 is carried 1.5-12 m: at 5 % drift the odometry's share outweighs the closures' 0.2 m.
+    carried = matches[8].covariance - _gap(own[8], matches[8].pose)
+    widened = np.trace(carried[:2, :2]) > 3 * np.trace(CLOSURE_COVARIANCE[:2, :2])
+    assert bool(widened) is (drift == 0.05)
+    assert np.array_equal(matches[9].covariance, sharp)
+    assert np.allclose(matches[9].pose, own[9])
+
+
 def test_a_confirmed_closure_picks_out_the_agreeing_ones_among_waiting_matches():
     verdicts = _revisit({1: np.array([15.0, 4.0, 0.5]), 2: np.array([0.3, 0.2, 0.02])})
     confirms = [key for v in verdicts for key in v.confirms]

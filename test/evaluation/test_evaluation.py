@@ -102,6 +102,27 @@ def test_published_closure_metrics_count_what_a_back_end_would_receive():
     assert nothing["closures_published"] == 0 and np.isnan(nothing["precision_published"])
 
 
+def test_published_covariances_are_judged_by_the_errors_they_claim():
+    """d2 of each published closure: its position error under its published (x, y)
+    covariance. An error along the wide axis counts less than the same error across it;
+    closures not published, and records without a covariance, are left out."""
+    def record(error, covariance, published=True):
+        closure = _record(1.0, 1.0, float(np.hypot(*error)), 1.0, 0.9, [1.0], published)
+        closure.estimate = [*error, 0.0]
+        closure.position_covariance = covariance
+        return closure
+
+    records = [record([2.0, 0.0], [4.0, 0.0, 1.0]),            # 1 sigma along x: d2 1
+               record([0.0, 2.0], [4.0, 0.0, 1.0]),            # 2 sigma along y: d2 4
+               record([1.0, 1.0], [2.0, 1.0, 2.0]),            # along the correlation: 2/3
+               record([5.0, 5.0], [0.01, 0.0, 0.01], False),   # not published
+               record([1.0, 0.0], [np.nan] * 3)]               # no covariance
+    summary = summarise(records, tolerance_m=3.0, n_references=4)
+    assert summary["published_d2_median"] == pytest.approx(1.0)
+    assert summary["published_d2_p90"] == pytest.approx(1.0 + 0.8 * 3.0)
+    assert np.isnan(summarise(records[3:], 3.0, 4)["published_d2_median"])
+
+
 def test_where_headings_are_unknown_retrieval_is_scored_and_poses_are_not():
     """Images turned by unknown yaws (BEVPlace's rotated copies): a retrieval still counts,
     but a pose, carrying the reference image's unknown turn, is not scored, nor are the
@@ -430,9 +451,10 @@ class _LateVoucher(_Describer):
 
     def query(self, descriptor, n_active, odometry):
         self.odometry.append(np.asarray(odometry, dtype=float))
-        confirms = {0: ("accepted: vouched", self.odometry[0])} if len(self.odometry) == 3 else {}
+        confirms = ({0: ("accepted: vouched", self.odometry[0], np.diag([0.25, 0.04]))}
+                    if len(self.odometry) == 3 else {})
         return Retrieval(0, self.odometry[-1] + [5.0, 0.0, 0.0], 0.3, np.zeros(1, dtype=int),
-                         0.0, confirms=confirms)
+                         0.0, confirms=confirms, position_covariance=np.eye(2) * 0.01)
 
 
 def test_a_match_published_late_is_recorded_at_the_pose_it_is_published_at():
@@ -443,4 +465,6 @@ def test_a_match_published_late_is_recorded_at_the_pose_it_is_published_at():
     first, second = run.records[:2]
     assert first.published and first.reason == "accepted: vouched"
     assert first.estimate == pytest.approx(first.truth) and first.rte_m == pytest.approx(0.0)
+    assert first.position_covariance == pytest.approx([0.25, 0.0, 0.04])
+    assert second.position_covariance == pytest.approx([0.01, 0.0, 0.01])
     assert not second.published and second.rte_m == pytest.approx(5.0)
