@@ -179,15 +179,15 @@ def published_d2(records: list[QueryRecord]) -> np.ndarray:
     """Per record, the squared Mahalanobis distance of its position error (estimate - truth)
     under its published (x, y) covariance; NaN where either is missing or the covariance is
     singular."""
-    d2 = np.full(len(records), np.nan)
-    for row, record in enumerate(records):
-        xx, xy, yy = record.position_covariance
-        error = np.subtract(record.estimate[:2], record.truth[:2])
-        determinant = xx * yy - xy * xy
-        if np.isfinite(error).all() and determinant > 0:
-            d2[row] = (yy * error[0] ** 2 - 2 * xy * error[0] * error[1]
-                       + xx * error[1] ** 2) / determinant
-    return d2
+    if not records:
+        return np.zeros(0)
+    xx, xy, yy = np.array([r.position_covariance for r in records], dtype=float).T
+    dx, dy = (np.array([r.estimate[:2] for r in records], dtype=float)
+              - np.array([r.truth[:2] for r in records], dtype=float)).T
+    determinant = xx * yy - xy * xy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d2 = (yy * dx ** 2 - 2 * xy * dx * dy + xx * dy ** 2) / determinant
+    return np.where(determinant > 0, d2, np.nan)
 
 
 def _published_d2(d2: np.ndarray) -> dict[str, float]:
