@@ -132,7 +132,7 @@ class _Candidate:
     # for it.
     on_vouch: Callable[[np.ndarray, np.ndarray], None] | None = None
     # Its estimate's covariance (3x3, map frame): a confirmed candidate lends it, carried, to
-    # the matches it vouches for.
+    # the matches it vouches for (a match awaiting a vouch lends nothing).
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     # A confirmed candidate's reach: the travel of the latest match it vouched for, or its
     # own; it vouches while the robot is within the vouch window of its reach.
@@ -259,22 +259,20 @@ class OdometryConsistency:
         """Whether each predicted pose lies within the consistency tolerances of estimate."""
         return within_tolerance(predicted, estimate, self.search)
 
-    def support(self, odometry: np.ndarray, estimate: np.ndarray, key: Any = None,
-                covariance: np.ndarray | None = None) -> tuple[int, dict[Any, str], bool]:
+    def support(self, odometry: np.ndarray, estimate: np.ndarray, covariance: np.ndarray,
+                key: Any = None) -> tuple[int, dict[Any, str], bool]:
         """(earlier candidates agreeing with this one, the earlier matches that this
         agreement confirms or, once a candidate is confirmed, that it vouches for (key ->
         CONFIRMED_LATER or VOUCHED), whether a confirmed candidate vouches for this one that
         lacks support); the current one is then remembered as a candidate. covariance: the
-        estimate's (3x3, map frame), lent to the matches it vouches for once confirmed; None:
-        exact."""
+        estimate's (3x3, map frame), lent to the matches it vouches for once confirmed."""
         odometry = np.asarray(odometry, dtype=np.float64)
         estimate = np.asarray(estimate, dtype=np.float64)
         needed = self.search.consistency_min_support
         self._serials += 1
         current = _Candidate(odometry, estimate, self.travelled_m, key, 0, False,
-                             serial=self._serials)
-        if covariance is not None:
-            current.covariance = np.asarray(covariance, dtype=np.float64)
+                             serial=self._serials,
+                             covariance=np.asarray(covariance, dtype=np.float64))
         agree = (self._agreeing(self._candidates, current, self.min_separation_m)
                  if self._candidates else [])
         agreeing = [c for c, agrees in zip(self._candidates, agree) if agrees]
@@ -354,11 +352,10 @@ class OdometryConsistency:
         agree = self._within_tolerance(places, match.estimate)
         if not agree.any():
             return False
-        for anchor, agrees in zip(anchors, agree):
-            if agrees:
-                anchor.extend_reach(match.travelled_m)
+        vouchers = [anchor for anchor, agrees in zip(anchors, agree) if agrees]
+        for anchor in vouchers:
+            anchor.extend_reach(match.travelled_m)
         if match.on_vouch is not None:
-            vouchers = [anchor for anchor, agrees in zip(anchors, agree) if agrees]
             match.on_vouch(mean_planar(places[agree]), pooled_covariance(
                 places[agree], [carried_covariance(anchor, place, match.travelled_m, self.search)
                                 for anchor, place in zip(vouchers, places[agree])]))
@@ -470,8 +467,8 @@ class MatchVerifier:
                            awaiting_vouch=True)
         if not self.consistency_active:
             return Verdict(True, "accepted", fitness)
-        support, confirms, vouched = self.consistency.support(odometry, match.pose, key,
-                                                              match.covariance)
+        support, confirms, vouched = self.consistency.support(odometry, match.pose,
+                                                              match.covariance, key)
         if vouched:
             return Verdict(True, VOUCHED, fitness, support, confirms)
         if support < search.consistency_min_support:
