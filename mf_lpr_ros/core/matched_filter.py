@@ -16,6 +16,7 @@ with a few queries of its own correlates pair by pair instead, from 2-D spectra.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from functools import cached_property
 
@@ -29,6 +30,13 @@ from mf_lpr_ros.core.workers import Workers
 # Pairs correlated at once by _allowed_scores: their spectra stay in a core's cache from product
 # to inverse (~0.6 MB at the defaults).
 _PAIRS_PER_CHUNK = 32
+
+# A reference's 2-D spectrum, once a search of pairs has made it, is kept while the kept spectra
+# of every reference the bank has room for take at most this much: at 1,500 references (29 MB)
+# a query no longer transforms its 64 candidates along y (~0.7 ms alone; 0.15-0.22 ms of a
+# query's median, 0.5 of its mean: docs/RESULTS.md, "Scale", session 59). A bank with room
+# for more than ~12,000 references makes them per query.
+_KEPT_PLANE_SPECTRA_BYTES = 256 * 2 ** 20
 
 
 class PreparedQueries:
@@ -63,8 +71,11 @@ class SpectralBank(NumpyArrays):
     its rows, so that the candidates of a query are gathered as whole blocks. The products
     read it as (K, H, references), which BLAS takes as a transposed operand without a copy.
     Beside it the bank keeps its images' norms and how many references are filled; the storage
-    grows by doubling.
+    grows by doubling. The 2-D spectra a search of pairs needs are kept once made, where they
+    fit kept_plane_spectra_bytes and the bank is not refilled.
     """
+
+    kept_plane_spectra_bytes = _KEPT_PLANE_SPECTRA_BYTES
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
                  workers: Workers | None = None) -> None:
@@ -86,6 +97,13 @@ class SpectralBank(NumpyArrays):
         self._bank = self._new_bank(max(capacity, 1))
         self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
         self._count = 0
+        self._keeps_plane_spectra = True
+        self._drop_plane_spectra()
+
+    def _drop_plane_spectra(self) -> None:
+        """Forget every kept 2-D spectrum (candidate_spectra)."""
+        self._kept_planes = None
+        self._kept_plane_made = np.zeros(0, dtype=bool)
 
     def append(self, images: np.ndarray) -> None:
         """Add references, (n, H, W) float32."""
@@ -98,8 +116,11 @@ class SpectralBank(NumpyArrays):
         self._count = stop
 
     def refill(self, images: np.ndarray) -> None:
-        """Replace every reference by images, keeping the storage."""
+        """Replace every reference by images, keeping the storage. A bank refilled (with each
+        query's candidates) keeps no 2-D spectra from then on: none would be asked for twice."""
         self._count = 0
+        self._keeps_plane_spectra = False
+        self._drop_plane_spectra()
         self.append(images)
 
     def _reserve(self, needed: int) -> None:
@@ -124,7 +145,8 @@ class SpectralBank(NumpyArrays):
 
     @property
     def nbytes(self) -> int:
-        return self._nbytes(self._bank) + self._norms.nbytes
+        kept = 0 if self._kept_planes is None else self._nbytes(self._kept_planes)
+        return self._nbytes(self._bank) + self._norms.nbytes + kept
 
     def _spectra(self, images: np.ndarray) -> np.ndarray:
         """(n, K, H) row spectra of images (n, H, W)."""
@@ -157,9 +179,33 @@ class SpectralBank(NumpyArrays):
 
     def candidate_spectra(self, references: np.ndarray) -> np.ndarray:
         """The 2-D spectra (n, column_length, K) of references (indices, in their order) that
-        a search of allowed pairs correlates: their stored row spectra transformed along y."""
+        a search of allowed pairs correlates: their stored row spectra transformed along y,
+        each made once where they are kept (kept_plane_spectra_bytes)."""
+        references = np.asarray(references, dtype=np.int64)
+        kept = self._kept_plane_spectra()
+        if kept is None:
+            return self._transformed_along_y(references)
+        missing = references[~self._kept_plane_made[references]]
+        if len(missing):
+            kept[missing] = self._transformed_along_y(missing)
+            self._kept_plane_made[missing] = True
+        return kept[references]
+
+    def _transformed_along_y(self, references: np.ndarray) -> np.ndarray:
         return self._contiguous(self._dft(self._bank[self._index(references)],
                                           self.column_length).swapaxes(1, 2))
+
+    def _kept_plane_spectra(self) -> np.ndarray | None:
+        """The kept 2-D spectra (capacity, column_length, K), made empty at first use and
+        again when the storage has grown; None where they would not fit or are not kept."""
+        shape = (self._bank.shape[0], self.column_length, self.n_freqs)
+        if (not self._keeps_plane_spectra or math.prod(shape) * np.dtype(np.complex64).itemsize
+                > self.kept_plane_spectra_bytes):
+            self._drop_plane_spectra()
+        elif self._kept_planes is None or self._kept_planes.shape != shape:
+            self._kept_planes = np.empty(shape, dtype=np.complex64)
+            self._kept_plane_made = np.zeros(shape[0], dtype=bool)
+        return self._kept_planes
 
     def operator(self, prepared: PreparedQueries) -> np.ndarray:
         """The operator (K, A (2S+1), H) of every query in prepared, built once.

@@ -300,9 +300,11 @@ class MatchedFilterIndex:
         # The query turned to each local-stage angle used so far, by angle: finalists of one
         # query mostly share their headings. Emptied at every query.
         self._turned_query: dict[float, _TurnedQuery] = {}
-        # The query's low-resolution weights by global heading, made once per query: the
-        # candidate stage and the global stage mostly need the same headings.
-        self._pooled_turns: dict[int, np.ndarray] = {}
+        # The query's low-resolution weights at each global heading, made once per query
+        # (those _pooled_made marks): the candidate stage and the global stage mostly need the
+        # same headings.
+        self._pooled_turns = np.empty((len(self.global_angles), size, size), dtype=np.float32)
+        self._pooled_made = np.zeros(len(self.global_angles), dtype=bool)
         self.bank.reserve_operator(len(self.global_angles))
         self._query_lock = threading.Lock()
         self._indexed = 0
@@ -402,7 +404,8 @@ class MatchedFilterIndex:
             self._estimate_headings()
             self._query_offset = np.full(2, float(sensor_offset_m))
             self._query_seen = self._seen(occupancy)
-            self._turned_query, self._pooled_turns = {}, {}
+            self._turned_query = {}
+            self._pooled_made[:] = False
             with self._workers.own_cores():
                 return self._query(occupancy, n_active, request, revisit_places)
 
@@ -1049,7 +1052,7 @@ class MatchedFilterIndex:
             return np.arange(n_refs)
         with self._query_lock:
             self._query_seen = self._seen(occupancy)
-            self._pooled_turns = {}
+            self._pooled_made[:] = False
             upright = self._turned_and_pooled(occupancy, np.arange(1))[0]
             return self._candidates(occupancy, upright, n_refs, top_k)
 
@@ -1217,21 +1220,22 @@ class MatchedFilterIndex:
     def _turned_and_pooled(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
         """The query's low-resolution weights turned to global_angles[headings]: (A, d, d),
         each heading made once per query (self._pooled_turns)."""
-        missing = np.array([h for h in headings if int(h) not in self._pooled_turns],
-                           dtype=np.int64)
+        headings = np.asarray(headings, dtype=np.int64)
+        missing = headings[~self._pooled_made[headings]]
         if (2 * len(missing) > len(self.global_angles) and self._turned_pooling is not None
                 and self._query_seen is None):
             # Every heading at once (TurnedPooling on the root headings, the rest laid out)
             # costs about what a third to a half of them turned one by one does.
             missing = np.arange(len(self.global_angles))
         if len(missing):
-            self._pooled_turns.update(zip(missing.tolist(),
-                                          self._turn_and_pool(occupancy, missing)))
-        return np.stack([self._pooled_turns[int(h)] for h in headings])
+            self._turn_and_pool(occupancy, missing)
+            self._pooled_made[missing] = True
+        return self._pooled_turns[headings]
 
-    def _turn_and_pool(self, occupancy: np.ndarray, headings: np.ndarray) -> np.ndarray:
-        """The query's low-resolution weights at global_angles[headings]: their root headings
-        turned (quarter_turn_roots), the others laid out from those by np.rot90."""
+    def _turn_and_pool(self, occupancy: np.ndarray, headings: np.ndarray) -> None:
+        """The query's low-resolution weights at global_angles[headings], into
+        self._pooled_turns: their root headings turned (quarter_turn_roots), the others laid
+        out from those by np.rot90."""
         roots = np.unique(self._heading_roots[headings])
         if (len(roots) == len(self._root_headings) and self._turned_pooling is not None
                 and self._query_seen is None):
@@ -1240,15 +1244,12 @@ class MatchedFilterIndex:
             turned = pooled_weights(rotate_occupancy(occupancy, self.global_angles, roots),
                                     self.params.unoccupied_weight, self.params.pool,
                                     self._query_covered(self.global_angles, roots))
-        if np.array_equal(roots, headings):
-            return turned
         rows = np.searchsorted(roots, self._heading_roots[headings])
         turns = self._heading_turns[headings]
-        laid_out = np.empty((len(headings), *turned.shape[1:]), dtype=turned.dtype)
         for quarter_turns in np.unique(turns):
             chosen = turns == quarter_turns
-            laid_out[chosen] = np.rot90(turned[rows[chosen]], -int(quarter_turns), axes=(1, 2))
-        return laid_out
+            self._pooled_turns[headings[chosen]] = np.rot90(
+                turned, -int(quarter_turns), axes=(1, 2))[rows[chosen]]
 
     def _footprint_keeps_quarter_turns(self) -> bool:
         """Whether a query's weights turned by a quarter turn are its weights turned cell by

@@ -247,6 +247,52 @@ def test_allowed_pairs_score_alike_from_candidate_spectra_made_beforehand(rng):
     assert not np.allclose(moved[:2], made_here[0][:2])
 
 
+def test_candidate_spectra_are_made_once_and_follow_the_references_they_belong_to(rng):
+    size, max_shift = 12, 4
+    references = rng.normal(size=(7, size, size)).astype(np.float32)
+    kept = SpectralBank(size, size, max_shift, capacity=2)
+    made_each_time = SpectralBank(size, size, max_shift, capacity=2)
+    made_each_time.kept_plane_spectra_bytes = 0
+    transformed = []
+    transform = kept._transformed_along_y
+    kept._transformed_along_y = lambda references: (transformed.append(references.tolist())
+                                                    or transform(references))
+
+    def fill(images: np.ndarray, how: str) -> None:
+        for bank in (kept, made_each_time):
+            getattr(bank, how)(images)
+
+    def assert_alike(subset: list[int]) -> None:
+        np.testing.assert_array_equal(kept.candidate_spectra(np.array(subset)),
+                                      made_each_time.candidate_spectra(np.array(subset)))
+
+    fill(references[:3], "append")
+    assert_alike([2, 0])
+    assert_alike([0, 1, 2])
+    # Each reference was transformed once, when first asked for.
+    assert transformed == [[2, 0], [1]]
+    assert kept.nbytes > made_each_time.nbytes
+    # Grown past its room, the bank keeps its references and makes their spectra again.
+    fill(references[3:5], "append")
+    assert_alike([4, 0, 3])
+    assert transformed[-1] == [4, 0, 3]
+    # Where every reference's would not fit, none is kept.
+    kept.kept_plane_spectra_bytes = 0
+    for _ in range(2):
+        assert_alike([1, 0])
+        assert transformed[-1] == [1, 0]
+    assert len(transformed) == 5
+    assert kept.nbytes == made_each_time.nbytes
+    # Refilled (each query's candidates), every reference is another image and none is kept.
+    kept.kept_plane_spectra_bytes = made_each_time.kept_plane_spectra_bytes = 2 ** 20
+    fill(references[5:], "refill")
+    for _ in range(2):
+        assert_alike([1, 0])
+        assert transformed[-1] == [1, 0]
+    assert len(transformed) == 7
+    assert kept.nbytes == made_each_time.nbytes
+
+
 @pytest.mark.parametrize("size,max_shift", [(14, 4), (15, 6), (60, 10)])
 def test_a_quarter_turned_spectrum_is_the_spectrum_of_the_turned_image(rng, size, max_shift):
     bank = SpectralBank(size, size, max_shift)

@@ -3,7 +3,12 @@ import pytest
 from helpers import turned_view_map
 
 from mf_lpr_ros.config import preset
-from mf_lpr_ros.core.descriptor import describe_density_image, describe_points, rotate_occupancy
+from mf_lpr_ros.core.descriptor import (
+    describe_density_image,
+    describe_points,
+    pooled_weights,
+    rotate_occupancy,
+)
 from mf_lpr_ros.core.map_store import ReferenceMap
 from mf_lpr_ros.core.pose import (
     alignment_from_poses,
@@ -847,6 +852,46 @@ def test_a_map_of_unknown_headings_reports_the_nearest_view_among_the_matchs_nei
         nearest += gap_reported <= 1.01
         beside_finalists += reported.reference_index not in best.candidates[:2]
     assert nearest >= 23 and beside_finalists >= 3
+
+
+def test_the_query_at_each_heading_is_made_once_and_is_the_query_turned_to_it(world):
+    rng = np.random.default_rng(5)
+    reference_map = ReferenceMap(PARAMS)
+    for i, (x, y) in enumerate([(0, 0), (25, 0), (0, 25)]):
+        points, pose = scan_world(world, x, y, 0.8 * i, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i),
+                             pose, float(i), i)
+    index = MatchedFilterIndex(reference_map, SearchParams())
+    query = describe_points(scan_world(world, 3.0, -1.0, 0.7, rng)[0], PARAMS)
+    angles = index.global_angles
+    expected = pooled_weights(rotate_occupancy(query, angles), PARAMS.unoccupied_weight,
+                              PARAMS.pool, index._query_covered(angles))
+    index.query(query)
+    index._pooled_made[:] = False
+    made = []
+    turn_and_pool = index._turn_and_pool
+    index._turn_and_pool = lambda occupancy, headings: (made.append(headings.tolist())
+                                                        or turn_and_pool(occupancy, headings))
+    # A few headings turned one by one, then more than half of them at once (the roots turned,
+    # the rest laid out by quarter turns): each the query turned to its heading, made once.
+    few = np.array([40, 0, 5])
+    np.testing.assert_array_equal(index._turned_and_pooled(query, few), expected[few])
+    np.testing.assert_array_equal(index._turned_and_pooled(query, few[:2]), expected[few[:2]])
+    assert made == [[40, 0, 5]]
+    every = np.arange(len(angles))
+    np.testing.assert_array_equal(index._turned_and_pooled(query, every[::-1]),
+                                  expected[::-1])
+    assert made[1] == every.tolist()
+    assert len(index._root_headings) < len(angles) / 3
+    # The next query starts afresh.
+    other = describe_points(scan_world(world, 20.0, 2.0, -1.1, rng)[0], PARAMS)
+    index.query(other)
+    made_for_other = index._pooled_made.copy()
+    assert made_for_other.any()
+    np.testing.assert_array_equal(
+        index._pooled_turns[made_for_other],
+        pooled_weights(rotate_occupancy(other, angles), PARAMS.unoccupied_weight, PARAMS.pool,
+                       index._query_covered(angles))[made_for_other])
 
 
 @pytest.mark.parametrize("descriptor,search", [

@@ -84,7 +84,11 @@ class TorchArrays:
 
 class TorchSpectralBank(TorchArrays, SpectralBank):
     """SpectralBank with the bank and the query operators on a torch device. Operators are
-    built on the device for each query batch (no reused host buffers, unlike numpy's)."""
+    built on the device for each query batch (no reused host buffers, unlike numpy's), and the
+    candidates' 2-D spectra are transformed for each query (SpectralBank keeps them in host
+    memory, which a device would read back from)."""
+
+    kept_plane_spectra_bytes = 0
 
     def __init__(self, height: int, width: int, max_shift: int, capacity: int = 64,
                  device: torch.device | None = None) -> None:
