@@ -84,9 +84,9 @@ class TorchArrays:
 
 class TorchSpectralBank(TorchArrays, SpectralBank):
     """SpectralBank with the bank and the query operators on a torch device. Operators are
-    built on the device for each query batch (no reused host buffers, unlike numpy's), and the
-    candidates' 2-D spectra are transformed for each query (SpectralBank keeps them in host
-    memory, which a device would read back from)."""
+    built on the device for each query batch (no reused host buffers, unlike numpy's), and so
+    are the candidates' 2-D spectra: SpectralBank keeps those in a numpy array, not on a
+    device."""
 
     kept_plane_spectra_bytes = 0
 
