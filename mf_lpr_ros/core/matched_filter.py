@@ -114,6 +114,9 @@ class SpectralBank(NumpyArrays):
         self._bank[start:stop] = self._from_host(spectra)
         self._norms[start:stop] = np.sqrt(np.einsum("nij,nij->n", images, images))
         self._count = stop
+        # Room for the kept 2-D spectra now, not at the first query: a localiser's memory is
+        # then settled once its map is loaded (filling the room touches its pages, no more).
+        self._kept_plane_spectra()
 
     def refill(self, images: np.ndarray) -> None:
         """Replace every reference by images, keeping the storage. A bank refilled (with each
@@ -196,8 +199,9 @@ class SpectralBank(NumpyArrays):
                                           self.column_length).swapaxes(1, 2))
 
     def _kept_plane_spectra(self) -> np.ndarray | None:
-        """The kept 2-D spectra (capacity, column_length, K), made empty at first use and
-        again when the storage has grown; None where they would not fit or are not kept."""
+        """The kept 2-D spectra (capacity, column_length, K), made empty once references are
+        appended and again when the storage has grown; None where they would not fit or are
+        not kept."""
         shape = (self._bank.shape[0], self.column_length, self.n_freqs)
         if (not self._keeps_plane_spectra or math.prod(shape) * np.dtype(np.complex64).itemsize
                 > self.kept_plane_spectra_bytes):
