@@ -97,12 +97,7 @@ class SpectralBank(NumpyArrays):
         self._bank = self._new_bank(max(capacity, 1))
         self._norms = np.zeros(max(capacity, 1), dtype=np.float32)
         self._count = 0
-        self._keeps_plane_spectra = True
-        self._drop_plane_spectra()
-
-    def _drop_plane_spectra(self) -> None:
-        """Forget every kept 2-D spectrum (candidate_spectra)."""
-        self._kept_planes = None
+        self._kept_planes: np.ndarray | None = None
         self._kept_plane_made = np.zeros(0, dtype=bool)
 
     def append(self, images: np.ndarray) -> None:
@@ -122,8 +117,7 @@ class SpectralBank(NumpyArrays):
         """Replace every reference by images, keeping the storage. A bank refilled (with each
         query's candidates) keeps no 2-D spectra from then on: none would be asked for twice."""
         self._count = 0
-        self._keeps_plane_spectra = False
-        self._drop_plane_spectra()
+        self.kept_plane_spectra_bytes = 0
         self.append(images)
 
     def _reserve(self, needed: int) -> None:
@@ -203,9 +197,8 @@ class SpectralBank(NumpyArrays):
         appended and again when the storage has grown; None where they would not fit or are
         not kept."""
         shape = (self._bank.shape[0], self.column_length, self.n_freqs)
-        if (not self._keeps_plane_spectra or math.prod(shape) * np.dtype(np.complex64).itemsize
-                > self.kept_plane_spectra_bytes):
-            self._drop_plane_spectra()
+        if math.prod(shape) * np.dtype(np.complex64).itemsize > self.kept_plane_spectra_bytes:
+            self._kept_planes = None
         elif self._kept_planes is None or self._kept_planes.shape != shape:
             self._kept_planes = np.empty(shape, dtype=np.complex64)
             self._kept_plane_made = np.zeros(shape[0], dtype=bool)

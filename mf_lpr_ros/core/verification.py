@@ -51,6 +51,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Iterable
 
 import numpy as np
@@ -458,8 +459,7 @@ class MatchVerifier:
         if reasons:
             # A weak peak places the query less precisely than the vouching closures do
             # (docs/RESULTS.md, sessions 20 and 51): a weak match takes their pose.
-            on_vouch = (lambda pose, covariance: take_pose(match, pose, covariance)) if weak \
-                else None
+            on_vouch = partial(take_pose, match) if weak else None
             if self.consistency.vouched(odometry, match.pose, key, on_vouch):
                 return Verdict(True, VOUCHED_WHERE_PREDICTED if match.revisit_predicted
                                else VOUCHED, fitness)
