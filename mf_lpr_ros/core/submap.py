@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mf_lpr_ros.core.descriptor import one_point_per_voxel
+from mf_lpr_ros.core.descriptor import finite_rows, one_point_per_voxel, rows_where
 from mf_lpr_ros.params import DescriptorParams
 
 # Stored scans are thinned to a fraction of the descriptor's voxel: the occupancy that the
@@ -122,7 +122,7 @@ class Submap:
             return
         pose = np.asarray(pose, dtype=np.float64)
         thinned = self._thinned(points)
-        world = thinned @ pose[:3, :3].T + pose[:3, 3]
+        world = moved(thinned, pose)
         with self._lock:
             if self._kept and stamp <= self._kept[-1].stamp:
                 self._clear()
@@ -157,9 +157,8 @@ class Submap:
                 complete = True
                 break
             used.append(earlier)
-        sensor_T_world = np.linalg.inv(current.pose)
-        world = np.concatenate([scan.world_points for scan in used])
-        points = world @ sensor_T_world[:3, :3].T + sensor_T_world[:3, 3]
+        points = moved(np.concatenate([scan.world_points for scan in used]),
+                       np.linalg.inv(current.pose))
         return SubmapPoints(points, len(used), current.travelled_m - used[-1].travelled_m,
                             complete)
 
@@ -171,6 +170,14 @@ class Submap:
 
     def _thinned(self, points: np.ndarray) -> np.ndarray:
         xyz = np.asarray(points, dtype=np.float64)[:, :3]
-        xyz = xyz[np.isfinite(xyz).all(axis=1)]
-        xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) <= self.window.reach_m]
+        xyz = rows_where(xyz, finite_rows(xyz))
+        xyz = rows_where(xyz, np.hypot(xyz[:, 0], xyz[:, 1]) <= self.window.reach_m)
         return one_point_per_voxel(xyz, self.window.voxel_m)
+
+
+def moved(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """points (N, 3) float64 moved by the rigid transform (4x4). Its rotation is copied out of
+    the 4x4 first: numpy multiplies by a strided 3x3 without BLAS, ~3x slower."""
+    moved_points = points @ np.ascontiguousarray(transform[:3, :3].T)
+    moved_points += transform[:3, 3]
+    return moved_points

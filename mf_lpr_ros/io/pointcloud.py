@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from mf_lpr_ros.core.descriptor import finite_rows, rows_where
 from mf_lpr_ros.errors import InvalidCloudError
 
 # sensor_msgs/PointField datatypes.
@@ -54,7 +55,7 @@ def pointcloud2_to_xyz(cloud: Any, max_points: int | None = None) -> np.ndarray:
     with np.errstate(over="ignore"):
         for column, axis in enumerate("xyz"):
             xyz[:, column] = records[axis].ravel()
-    return xyz[np.isfinite(xyz).all(axis=1)]
+    return rows_where(xyz, finite_rows(xyz))
 
 
 def _checked_shape(cloud: Any, max_points: int | None) -> tuple[int, int, int, int]:

@@ -8,12 +8,15 @@ from mf_lpr_ros.core.descriptor import (
     describe_density_image,
     describe_points,
     filter_points,
+    finite_rows,
     footprint,
     height_density,
+    one_point_per_voxel,
     pool,
     pooled_weights,
     quarter_turn_roots,
     rotate_occupancy,
+    rows_where,
     weighted,
 )
 from mf_lpr_ros.errors import InvalidCloudError
@@ -66,6 +69,46 @@ def test_filter_drops_every_non_finite_coordinate_and_keeps_the_range_and_disc()
     np.testing.assert_array_equal(filter_points(cloud, DescriptorParams(voxel_size=0.5)),
                                   cloud[:3])
     assert len(filter_points(cloud, DescriptorParams(voxel_size=0.5, crop="square"))) == 4
+
+
+def test_occupied_voxels_are_counted_per_column_over_every_level(rng):
+    # A tall cloud (a submap's ~60 levels of 0.5 m) and a few columns crowded with points: each
+    # cell counts the distinct voxels above it, however many points share one.
+    cloud = np.concatenate([rng.uniform([-29, -29, -3], [29, 29, 27], (20000, 3)),
+                            rng.uniform([2.0, 2.0, 0.0], [2.4, 2.4, 9.9], (3000, 3))])
+    params = DescriptorParams(voxel_size=0.5, crop="square")
+    voxels = {(int(np.floor(y / 0.5)) + 60, int(np.floor(x / 0.5)) + 60, int(np.floor(z / 0.5)))
+              for x, y, z in cloud}
+    expected = np.zeros((120, 120))
+    for row, col, _ in voxels:
+        expected[row, col] += 1
+    density = height_density(cloud, params)
+    np.testing.assert_array_equal(density, expected)
+    assert density[64, 64] == 20
+
+
+def test_the_rows_kept_are_those_boolean_indexing_keeps(rng):
+    points = rng.normal(size=(1000, 4)).astype(np.float32)
+    for column, bad in enumerate((np.nan, np.inf, -np.inf)):
+        points[rng.choice(1000, 40, replace=False), column] = bad
+    # A non-finite intensity does not make a point unusable: only x, y and z are tested.
+    points[rng.choice(1000, 40, replace=False), 3] = np.nan
+    finite = finite_rows(points)
+    np.testing.assert_array_equal(finite, np.isfinite(points[:, :3]).all(axis=1))
+    assert 800 < finite.sum() < 900
+    np.testing.assert_array_equal(rows_where(points, finite), points[finite])
+    kept = filter_points(points, DescriptorParams(voxel_size=0.5, crop="square"))
+    np.testing.assert_array_equal(kept, points[finite][:, :3].astype(np.float64))
+    assert kept.dtype == np.float64 and kept.shape == (finite.sum(), 3)
+
+
+def test_one_point_is_kept_per_voxel_the_first_in_order(rng):
+    points = rng.uniform(-5, 5, (5000, 3))
+    kept = one_point_per_voxel(points, 0.5)
+    first = {}
+    for index, point in enumerate(points):
+        first.setdefault(tuple(np.floor(point / 0.5).astype(int)), index)
+    np.testing.assert_array_equal(kept, points[sorted(first.values())])
 
 
 def test_empty_or_all_nan_cloud_is_refused():
