@@ -48,8 +48,10 @@ import numpy as np
 from mf_lpr_ros.config import Config
 from mf_lpr_ros.core.descriptor import (
     FULL_CIRCLE_BELOW_DEG,
+    finite_rows,
     largest_empty_run,
     occupied_unit_voxels,
+    rows_where,
     voxel_size_for_density,
 )
 from mf_lpr_ros.core.pose import level_points
@@ -106,7 +108,7 @@ def measure_sensor(clouds: list[np.ndarray], orientations: list[np.ndarray] | No
                    ) -> SensorProfile:
     """A SensorProfile from sample clouds (sensor frame) and, when known, their world_R_sensor
     (used to level the points before the ground is looked for, and for the tilt spread)."""
-    finite = [np.asarray(c)[:, :3][np.isfinite(np.asarray(c)[:, :3]).all(axis=1)] for c in clouds]
+    finite = [rows_where(xyz, finite_rows(xyz)) for xyz in (np.asarray(c)[:, :3] for c in clouds)]
     finite = [c for c in finite if len(c)]
     if not finite:
         raise InvalidCloudError("preset auto needs scans with finite points to measure")

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mf_lpr_ros.core.descriptor import finite_rows, rows_where
+
 # Keys are (column + _KEY_OFFSET) * _KEY_SPAN + (row + _KEY_OFFSET): tile indices within
 # +-2^20 (16,000 km at 16 m tiles) stay distinct and sort column by column.
 _KEY_OFFSET = 1 << 20
@@ -49,7 +51,7 @@ class SiteCloud:
         if not (tile_m > 0 and half_m > 0):
             raise ValueError(f"tile_m and half_m must be > 0, got {tile_m} and {half_m}")
         points = np.asarray(points, dtype=np.float32)[:, :3]
-        points = points[np.isfinite(points).all(axis=1)]
+        points = rows_where(points, finite_rows(points))
         keys = _tile_keys(points, tile_m)
         order = np.argsort(keys, kind="stable")
         keys = keys[order]

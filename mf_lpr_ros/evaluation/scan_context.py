@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mf_lpr_ros.core.descriptor import finite_rows, rows_where
 from mf_lpr_ros.core.pose import wrap_angle
 
 
@@ -48,10 +49,10 @@ class ScanContextIndex:
         """The (rings, sectors) context of points (N, 3+) in the sensor frame."""
         p = self.params
         xyz = np.asarray(points)[:, :3].astype(np.float64)
-        xyz = xyz[np.isfinite(xyz).all(axis=1)]
+        xyz = rows_where(xyz, finite_rows(xyz))
         radius = np.hypot(xyz[:, 0], xyz[:, 1])
         keep = (radius < p.max_range) & (radius > 0)
-        xyz, radius = xyz[keep], radius[keep]
+        xyz, radius = rows_where(xyz, keep), radius[keep]
         ring = np.minimum((radius / p.max_range * p.n_rings).astype(np.int64), p.n_rings - 1)
         angle = np.mod(np.arctan2(xyz[:, 1], xyz[:, 0]), 2 * np.pi)
         sector = np.minimum((angle / (2 * np.pi) * p.n_sectors).astype(np.int64),

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mf_lpr_ros.core.descriptor import one_point_per_voxel
+from mf_lpr_ros.core.descriptor import finite_rows, one_point_per_voxel, rows_where
 from mf_lpr_ros.datasets.base import Sequence, read_kitti_poses, read_tum_poses
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.io.pcd import read_pcd
@@ -28,7 +28,7 @@ def read_global_cloud(path: str | Path) -> np.ndarray:
         points = read_ply(path)
     else:
         raise DatasetError(f"{path}: a global map must be a .pcd or .ply file")
-    points = points[np.isfinite(points).all(axis=1)]
+    points = rows_where(points, finite_rows(points))
     if not len(points):
         raise InvalidCloudError(f"{path}: the global map holds no finite point")
     return points
@@ -90,7 +90,7 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
             raise InvalidCloudError(f"{sequence.name}: accumulating needs point clouds, not "
                                     "density images")
         points = np.asarray(scan.points)[:, :3]
-        points = points[np.isfinite(points).all(axis=1)]
+        points = rows_where(points, finite_rows(points))
         batch.append((points @ scan.pose[:3, :3].T + scan.pose[:3, 3]).astype(np.float32))
         if len(batch) >= flush_every:
             merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
