@@ -92,22 +92,24 @@ def turns_with_sensor(params: DescriptorParams) -> bool:
 
 def rows_where(points: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """points[keep] for a boolean keep over the rows of points (N, C): numpy indexes a 2-D
-    array by a boolean mask row by row, np.compress in one pass (4-7x faster on a scan's
-    points, the same array)."""
+    array by a boolean mask row by row, np.compress in one pass (a submap's 34k points: 0.40
+    -> 0.08 ms, the same array)."""
+    if len(keep) != len(points):
+        # np.compress would cut the rows short where boolean indexing refuses.
+        raise ValueError(f"a mask of {len(keep)} entries for {len(points)} rows")
     return np.compress(keep, points, axis=0)
 
 
 def finite_rows(points: np.ndarray) -> np.ndarray:
-    """Whether each row of points (N, 3+) has a finite x, y and z: per coordinate, not a
-    reduction over rows of three (3x faster, the same mask)."""
+    """Whether each row of points (N, 3+) has a finite x, y and z: tested per coordinate, not
+    reduced over rows of three, which numpy does slowly (the same mask)."""
     return np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]) & np.isfinite(points[:, 2])
 
 
 def filter_points(points: np.ndarray, params: DescriptorParams) -> np.ndarray:
     """Finite points inside the height band, range and window (square or disc), as (N, 3)
     float64: the transposed view of one row per axis, so the tests here and the binning of
-    each axis run along contiguous rows instead of across rows of three (a scan described
-    ~1.5x faster)."""
+    each axis run along contiguous rows instead of across rows of three."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InvalidCloudError(f"points must have shape (N, 3+), got {points.shape}")

@@ -97,6 +97,8 @@ def test_the_rows_kept_are_those_boolean_indexing_keeps(rng):
     np.testing.assert_array_equal(finite, np.isfinite(points[:, :3]).all(axis=1))
     assert 800 < finite.sum() < 900
     np.testing.assert_array_equal(rows_where(points, finite), points[finite])
+    with pytest.raises(ValueError, match="999 entries for 1000 rows"):
+        rows_where(points, finite[:-1])
     kept = filter_points(points, DescriptorParams(voxel_size=0.5, crop="square"))
     np.testing.assert_array_equal(kept, points[finite][:, :3].astype(np.float64))
     assert kept.dtype == np.float64 and kept.shape == (finite.sum(), 3)
