@@ -73,18 +73,27 @@ class Workers:
         return results
 
     def matmul(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """left @ right, right's columns (its last axis) split among the threads."""
+        """left @ right shared among the threads: by whole matrices of a stack both operands
+        hold (at least one each), else by right's columns (its last axis). A stack's matrices
+        keep all their columns: a small map's 17 references split in two made each product
+        too narrow to run at BLAS speed."""
         columns = right.shape[-1]
         stack = np.broadcast_shapes(left.shape[:-2], right.shape[:-2])
         work = math.prod(stack) * left.shape[-2] * left.shape[-1] * columns
         if self.threads == 1 or work < self.threads * _MIN_WORK_PER_THREAD:
             return left @ right
         out = np.empty(stack + (left.shape[-2], columns), dtype=np.result_type(left, right))
-        bounds = np.linspace(0, columns, self.threads + 1).round().astype(int)
+        by_matrix = (len(stack) == 1 and left.shape[:-2] == right.shape[:-2]
+                     and stack[0] >= self.threads)
+        bounds = np.linspace(0, stack[0] if by_matrix else columns,
+                             self.threads + 1).round().astype(int)
 
         def multiply(worker: int) -> None:
             part = slice(bounds[worker], bounds[worker + 1])
-            np.matmul(left, right[..., part], out=out[..., part])
+            if by_matrix:
+                np.matmul(left[part], right[part], out=out[part])
+            else:
+                np.matmul(left, right[..., part], out=out[..., part])
 
         self.run(multiply)
         return out

@@ -46,7 +46,10 @@ def test_run_reraises_a_workers_error():
         Workers(2).run(fail_on_the_second)
 
 
-@pytest.mark.parametrize("shapes", [((21, 74), (74, 30000)), ((37, 63, 60), (37, 60, 900))])
+# Split by columns (2-D; a stack one operand lacks; a stack of one) and by whole matrices.
+@pytest.mark.parametrize("shapes", [((21, 74), (74, 30000)), ((63, 60), (37, 60, 900)),
+                                    ((1, 630, 600), (1, 600, 900)),
+                                    ((37, 63, 60), (37, 60, 900)), ((3, 630, 60), (3, 60, 901))])
 def test_a_split_product_equals_the_whole(shapes):
     rng = np.random.default_rng(0)
     left, right = (rng.normal(size=shape).astype(np.float32) for shape in shapes)
