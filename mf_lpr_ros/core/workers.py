@@ -6,8 +6,8 @@ enough for it to share, its threads spin-wait for the next one, and a thread of 
 its core taken (small products, too small for OpenBLAS to share, ran slower on 2 threads than
 on 1 whenever a large product had run just before; session 18). So while a
 search runs on several threads, BLAS is held to one thread (threadpoolctl) and the few large
-products are split by columns among ours instead (Workers.matmul). Without threadpoolctl a
-search stays on one thread.
+products are split among ours instead (Workers.matmul: a batch by whole matrices, a single
+product by columns). Without threadpoolctl a search stays on one thread.
 """
 
 from __future__ import annotations
@@ -74,9 +74,9 @@ class Workers:
 
     def matmul(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """left @ right shared among the threads: by whole matrices of a stack both operands
-        hold (at least one each), else by right's columns (its last axis). A stack's matrices
-        keep all their columns: a small map's 17 references split in two made each product
-        too narrow to run at BLAS speed."""
+        hold, when it has a matrix for each thread, else by right's columns (its last axis).
+        A stack's matrices keep all their columns: a small map's 17 references split in two
+        made each product too narrow to run at BLAS speed."""
         columns = right.shape[-1]
         stack = np.broadcast_shapes(left.shape[:-2], right.shape[:-2])
         work = math.prod(stack) * left.shape[-2] * left.shape[-1] * columns
