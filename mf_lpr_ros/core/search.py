@@ -528,7 +528,9 @@ class MatchedFilterIndex:
                 lambda: self.bank.candidate_spectra(columns))
         else:
             prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
-        if prefiltered or self.spectra_on_demand:
+        if prefiltered or self.spectra_on_demand or n_refs <= self.search.chunk_size:
+            # A map searched whole in one chunk keeps its scores' volume: the finalists are
+            # located in it, not correlated a second time.
             scores, volume = self.bank.best_of_subset(prepared, columns, self.search.chunk_size,
                                                       allowed, candidates)
         else:

@@ -894,6 +894,30 @@ def test_the_query_at_each_heading_is_made_once_and_is_the_query_turned_to_it(wo
                        index._query_covered(angles))[made_for_other])
 
 
+def test_a_map_searched_whole_is_correlated_once_and_its_finalists_located_in_it(world):
+    rng = np.random.default_rng(6)
+    reference_map = ReferenceMap(PARAMS)
+    for i, (x, y) in enumerate([(0, 0), (25, 0), (0, 25), (25, 25)]):
+        points, pose = scan_world(world, x, y, 0.5 * i, rng)
+        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i),
+                             pose, float(i), i)
+    query = describe_points(scan_world(world, 24.0, 1.0, 0.6, rng)[0], PARAMS)
+    index = MatchedFilterIndex(reference_map, SearchParams())
+    correlated = []
+    correlate = index.bank._correlate
+    index.bank._correlate = lambda rows, columns: (correlated.append(columns.shape[-1])
+                                                   or correlate(rows, columns))
+    match = index.query(query)
+    # Under prefilter_top_k the whole map is every reference's candidate, correlated in one
+    # chunk; its finalists are located in those scores, not correlated a second time.
+    assert correlated == [4]
+    assert match.reference_index == 1
+    exact = MatchedFilterIndex(reference_map, SearchParams(chunk_size=2))
+    exact_match = exact.query(query)
+    assert exact_match.reference_index == match.reference_index
+    np.testing.assert_allclose(exact_match.pose, match.pose, atol=1e-4)
+
+
 @pytest.mark.parametrize("descriptor,search", [
     (PARAMS, SearchParams(prefilter_top_k=4)),
     (DescriptorParams(voxel_size=0.4, z_min=-1.2, crop="disc"), SearchParams(prefilter_top_k=4)),
