@@ -274,12 +274,7 @@ class SpectralBank(NumpyArrays):
                            chunk_size: int = 256) -> np.ndarray:
         """Best score over the whole (dj, a, di) volume of every reference in [0, stop)."""
         stop = self._count if stop is None else min(stop, self._count)
-        best = self._empty_scores(stop)
-        for start in range(0, stop, chunk_size):
-            end = min(start + chunk_size, stop)
-            best[start:end] = self._amax(self.correlate_block(prepared, start, end).reshape(
-                -1, end - start), axis=0)
-        return self._to_host(best)
+        return self.best_of_subset(prepared, np.arange(stop), chunk_size)[0]
 
     def best_of_subset(self, prepared: PreparedQueries, references: np.ndarray,
                        chunk_size: int = 256, allowed: np.ndarray | None = None,

@@ -511,7 +511,7 @@ class MatchedFilterIndex:
         else:
             searched = np.arange(n_refs)
         prefilter_done = time.perf_counter()
-        volume, candidates = None, None
+        candidates = None
         if self.spectra_on_demand:
             # Column k is searched[k].
             self.bank.refill(self._low_in_order(searched))
@@ -528,13 +528,10 @@ class MatchedFilterIndex:
                 lambda: self.bank.candidate_spectra(columns))
         else:
             prepared = self.bank.prepare_queries(self._turned_and_pooled(occupancy, headings))
-        if prefiltered or self.spectra_on_demand or n_refs <= self.search.chunk_size:
-            # A map searched whole in one chunk keeps its scores' volume: the finalists are
-            # located in it, not correlated a second time.
-            scores, volume = self.bank.best_of_subset(prepared, columns, self.search.chunk_size,
-                                                      allowed, candidates)
-        else:
-            scores = self.bank.best_per_reference(prepared, n_refs, self.search.chunk_size)
+        # Scores that fit one chunk come back with them (volume): the finalists are located in
+        # them, not correlated a second time.
+        scores, volume = self.bank.best_of_subset(prepared, columns, self.search.chunk_size,
+                                                  allowed, candidates)
         scores = self._normalised(scores, self.bank.norms[columns])
         n_ranked = min(max(self.search.top_n, _REPORTED_CANDIDATES,
                            _RANKED_FOR_ANOTHER_PLACE if self.search.another_place_finalist
@@ -617,8 +614,8 @@ class MatchedFilterIndex:
                 or top_n < 2 or best <= 0 or rivals < 2):
             return order[:top_n], None
         eligible = order[: top_n - 1 + rivals]
-        # Located top_n at a time: where the whole volume is not at hand (an exhaustive
-        # search), each costs a correlation at every heading.
+        # Located top_n at a time: where the whole volume is not at hand (a map searched whole
+        # in more than one chunk), each costs a correlation at every heading.
         located = locate(eligible[:top_n])
         while True:
             elsewhere = np.flatnonzero(self._at_another_place(
