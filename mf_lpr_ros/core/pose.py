@@ -228,6 +228,14 @@ def composed_covariance(first: np.ndarray, first_covariance: np.ndarray, compose
             + rotate_covariance(np.asarray(second_covariance, dtype=np.float64), first[2]))
 
 
+def moved_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """points (N, 3) float64 moved by the rigid transform (4x4). Its rotation is copied out of
+    the 4x4 first: numpy multiplies by a strided 3x3 without BLAS, ~3x slower."""
+    moved = points @ np.ascontiguousarray(transform[:3, :3].T)
+    moved += transform[:3, 3]
+    return moved
+
+
 def level_points(points: np.ndarray, orientation: np.ndarray) -> np.ndarray:
     """Points (N, 3+) in a frame with the sensor's heading but no roll or pitch.
 
