@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from mf_lpr_ros.core.descriptor import finite_rows, one_point_per_voxel, rows_where
+from mf_lpr_ros.core.pose import moved_points
 from mf_lpr_ros.datasets.base import Sequence, read_kitti_poses, read_tum_poses
 from mf_lpr_ros.errors import DatasetError, InvalidCloudError
 from mf_lpr_ros.io.pcd import read_pcd
@@ -91,7 +92,7 @@ def accumulate(sequence: Sequence, voxel_m: float = 0.2, *, progress: bool = Tru
                                     "density images")
         points = np.asarray(scan.points)[:, :3]
         points = rows_where(points, finite_rows(points))
-        batch.append((points @ scan.pose[:3, :3].T + scan.pose[:3, 3]).astype(np.float32))
+        batch.append(moved_points(points, scan.pose).astype(np.float32))
         if len(batch) >= flush_every:
             merged = one_point_per_voxel(np.concatenate([merged, *batch]), voxel_m)
             batch = []

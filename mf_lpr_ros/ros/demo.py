@@ -20,7 +20,7 @@ from std_msgs.msg import Float64MultiArray
 
 from mf_lpr_ros.config import preset as named_preset
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import compose_planar, planar, planar_error, pose_matrix
+from mf_lpr_ros.core.pose import compose_planar, moved_points, planar, planar_error, pose_matrix
 from mf_lpr_ros.core.pose_graph import absolute_trajectory_error
 from mf_lpr_ros.datasets.rosbag import RosbagSequence
 from mf_lpr_ros.evaluation.protocol import revisits
@@ -236,7 +236,7 @@ def _overlay(ax, result: WorldResult) -> None:
             (reference_scan, reference_scan.pose, "0.4", "reference scan (day 1)"),
             (query_scan, placed, "tab:orange", "query scan (day 2) at the published pose")):
         band = (scan.points[:, 2] > -1.2) & (scan.points[:, 2] < 3.0)
-        world = scan.points[band] @ transform[:3, :3].T + transform[:3, 3]
+        world = moved_points(scan.points[band], transform)
         ax.scatter(world[::2, 0], world[::2, 1], s=0.3, color=colour, label=label)
     ax.set_title(f"{result.name}: BEV overlay of day-2 scan {index} on its match")
     ax.set_aspect("equal")

@@ -19,7 +19,7 @@ import numpy as np
 from mf_lpr_ros.config import preset
 from mf_lpr_ros.core.descriptor import describe_points, one_point_per_voxel
 from mf_lpr_ros.core.map_store import ReferenceMap
-from mf_lpr_ros.core.pose import planar_error, pose_matrix, quaternion_from_yaw
+from mf_lpr_ros.core.pose import moved_points, planar_error, pose_matrix, quaternion_from_yaw
 from mf_lpr_ros.core.search import MatchedFilterIndex
 from mf_lpr_ros.pipeline.global_map import RenderParams, build_global_map
 from mf_lpr_ros.progress import progress_bar
@@ -62,7 +62,7 @@ def run(source: str = "drive", progress: bool = True) -> tuple[list[DemoRow], di
         scan = cast(town.scene, sensor, pose, rng)
         keyframes.append(describe_points(scan, config.descriptor, reference=True,
                                          seed_key=index), pose, 0.0, index)
-        drive_clouds.append(scan @ pose[:3, :3].T + pose[:3, 3])
+        drive_clouds.append(moved_points(scan, pose))
     cloud = (one_point_per_voxel(np.concatenate(drive_clouds).astype(np.float32), 0.1)
              if source == "drive" else scene_cloud(town.scene))
     started = time.perf_counter()
