@@ -247,15 +247,11 @@ class SpectralBank(NumpyArrays):
             self._operator = np.empty(shape, dtype=np.complex64)
         return shape
 
-    def correlate_block(self, prepared: PreparedQueries, start: int, stop: int) -> np.ndarray:
-        """Scores of the prepared queries against references [start, stop).
-
-        Returns (2S+1 [dj], A, 2S+1 [di], stop - start) float32.
-        """
-        return self._correlate(self.operator(prepared), self._columns(self._bank[start:stop]))
-
     def correlate_subset(self, prepared: PreparedQueries, references: np.ndarray) -> np.ndarray:
-        """As correlate_block, for any references (indices), in the order given."""
+        """Scores of the prepared queries against references (indices), in the order given.
+
+        Returns (2S+1 [dj], A, 2S+1 [di], len(references)) float32.
+        """
         return self._correlate(self.operator(prepared),
                                self._columns(self._bank[self._index(references)]))
 
@@ -270,19 +266,14 @@ class SpectralBank(NumpyArrays):
         return self._product(self._inverse,
                              self._real_parts(spectra).reshape(2 * self.n_freqs, width))
 
-    def best_per_reference(self, prepared: PreparedQueries, stop: int | None = None,
-                           chunk_size: int = 256) -> np.ndarray:
-        """Best score over the whole (dj, a, di) volume of every reference in [0, stop)."""
-        stop = self._count if stop is None else min(stop, self._count)
-        return self.best_of_subset(prepared, np.arange(stop), chunk_size)[0]
-
     def best_of_subset(self, prepared: PreparedQueries, references: np.ndarray,
                        chunk_size: int = 256, allowed: np.ndarray | None = None,
                        candidates: np.ndarray | None = None
                        ) -> tuple[np.ndarray, "np.ndarray | AllowedScores | None"]:
-        """best_per_reference for the given references only, in their order; with allowed
-        ((n, A) bool on the host), only over the (reference, query) pairs it allows (-inf for
-        a reference with none), from the references' candidate_spectra when given.
+        """Best score over the whole (dj, a, di) volume of each of references, in their order;
+        with allowed ((n, A) bool on the host), only over the (reference, query) pairs it
+        allows (-inf for a reference with none), from the references' candidate_spectra when
+        given.
 
         Also returns the scores computed (the whole volume as correlate_subset, or the allowed
         pairs' AllowedScores) when the references fit one chunk, so that locating a few of

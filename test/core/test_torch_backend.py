@@ -30,8 +30,10 @@ def test_bank_operations_match_numpy():
         bank.append(references[:5])
         bank.append(references[5:])
     cpu_prepared, gpu_prepared = cpu.prepare_queries(queries), gpu.prepare_queries(queries)
-    np.testing.assert_allclose(gpu.best_per_reference(gpu_prepared, chunk_size=4),
-                               cpu.best_per_reference(cpu_prepared, chunk_size=4), atol=1e-4)
+    everything = np.arange(11)
+    np.testing.assert_allclose(gpu.best_of_subset(gpu_prepared, everything, chunk_size=4)[0],
+                               cpu.best_of_subset(cpu_prepared, everything, chunk_size=4)[0],
+                               atol=1e-4)
     subset = np.array([9, 2, 5])
     (cpu_best, cpu_volume), (gpu_best, gpu_volume) = (cpu.best_of_subset(cpu_prepared, subset),
                                                       gpu.best_of_subset(gpu_prepared, subset))
