@@ -237,7 +237,6 @@ class MatchedFilterIndex:
             self.covered_window = np.ones((self.params.size,) * 2, dtype=bool)
         self._map_offset = np.full(2, float(reference_map.metadata.get("sensor_offset_m", 0.0)))
         self._query_offset = np.zeros(2)
-        self._query_seen: np.ndarray | None = None
         # A rendered reference is a complete view; only a query's own view holds evidence.
         self.observed_queries = search.query_footprint == "observed" or (
             search.query_footprint == "auto"
@@ -297,9 +296,9 @@ class MatchedFilterIndex:
             if self.params.pool > 1 and (self.covered is None or not turns_with_sensor(
                 self.params)) else None)
         self._workers = backend.workers
-        # The query turned to each local-stage angle used so far, by angle: finalists of one
-        # query mostly share their headings. Emptied at every query.
-        self._turned_query: dict[float, _TurnedQuery] = {}
+        # The query's footprint, and the query turned to each local-stage angle used so far:
+        # finalists of one query mostly share their headings. New at every query.
+        self._query_views = _Views(None)
         # The query's low-resolution weights at each global heading, made once per query
         # (those _pooled_made marks): the candidate stage and the global stage mostly need the
         # same headings.
@@ -403,8 +402,7 @@ class MatchedFilterIndex:
         with self._query_lock:
             self._estimate_headings()
             self._query_offset = np.full(2, float(sensor_offset_m))
-            self._query_seen = self._seen(occupancy)
-            self._turned_query = {}
+            self._query_views = _Views(self._seen(occupancy))
             self._pooled_made[:] = False
             with self._workers.own_cores():
                 return self._query(occupancy, n_active, request, revisit_places)
@@ -883,11 +881,11 @@ class MatchedFilterIndex:
         positions known): their circular mean weighted by confidence and distance, again
         without those off it by more than local_rotation_range_deg."""
         occupancy = self.map.occupancy(reference)
-        self._turned_query, self._query_seen = {}, self._seen(occupancy)
         half = self.prefilter.angles_between(reference, neighbours)
         peaks = self._local_peaks(occupancy, [(int(neighbour), float(angle))
                                               for neighbour, turn in zip(neighbours, half)
-                                              for angle in (turn, turn + 180.0)])
+                                              for angle in (turn, turn + 180.0)],
+                                  _Views(self._seen(occupancy)))
         headings, weights = [], []
         for pair in range(len(neighbours)):
             peak = max(peaks[2 * pair: 2 * pair + 2], key=lambda aligned: aligned.score)
@@ -927,8 +925,8 @@ class MatchedFilterIndex:
         the spectra's angle is off (views farther apart), the poses' holds. A map whose
         headings are unknown (SearchParams.map_headings) offers the spectra's angle alone,
         and no yardstick (NaN) without a prefilter. Kept per reference while its nearest
-        other view stays the same (a growing map may bring a nearer one). Runs inside a
-        query: the query's turned views and footprint are put back afterwards.
+        other view stays the same (a growing map may bring a nearer one). The view is aligned
+        as a query of its own (its own _Views), the query's left as they are.
         """
         n_refs = len(self) if n_refs is None else min(n_refs, len(self))
         position = self.map.poses[reference, :2, 3]
@@ -950,13 +948,8 @@ class MatchedFilterIndex:
             yaws += [half, half + 180.0]
         if not yaws:
             return math.nan
-        query_state = self._turned_query, self._query_seen
-        self._turned_query, self._query_seen = {}, self._seen(occupancy)
-        try:
-            similarity = max(peak.confidence for peak in self._local_peaks(
-                occupancy, [(reference, yaw) for yaw in yaws]))
-        finally:
-            self._turned_query, self._query_seen = query_state
+        similarity = max(peak.confidence for peak in self._local_peaks(
+            occupancy, [(reference, yaw) for yaw in yaws], _Views(self._seen(occupancy))))
         self._place_similarity[reference] = (neighbour, similarity)
         return similarity
 
@@ -1050,7 +1043,7 @@ class MatchedFilterIndex:
         if self.prefilter is None or top_k <= 0 or n_refs <= top_k:
             return np.arange(n_refs)
         with self._query_lock:
-            self._query_seen = self._seen(occupancy)
+            self._query_views = _Views(self._seen(occupancy))
             self._pooled_made[:] = False
             upright = self._turned_and_pooled(occupancy, np.arange(1))[0]
             return self._candidates(occupancy, upright, n_refs, top_k)
@@ -1114,11 +1107,13 @@ class MatchedFilterIndex:
     def _local(self, occupancy: np.ndarray, reference: int, global_angle: float) -> "_LocalPeak":
         return self._local_peaks(occupancy, [(reference, global_angle)])[0]
 
-    def _local_peaks(self, occupancy: np.ndarray, jobs: list[tuple[int, float]]
-                     ) -> list["_LocalPeak"]:
+    def _local_peaks(self, occupancy: np.ndarray, jobs: list[tuple[int, float]],
+                     views: "_Views | None" = None) -> list["_LocalPeak"]:
         """The local stage for each (reference, global angle) of jobs, every job's FFTs in one
         batch: finalists at one heading share their turned queries, and a few large batches
-        cost less than many small ones."""
+        cost less than many small ones. views: occupancy's (the query's by default), which
+        keeps its turned weights for later jobs."""
+        views = self._query_views if views is None else views
         w = self.params.unoccupied_weight
         correlation = self._local_correlation
         angle_sets = [global_angle + self.local_offsets for _, global_angle in jobs]
@@ -1133,29 +1128,29 @@ class MatchedFilterIndex:
             """The surfaces of the query at angle_sets[job][angle] against job's reference,
             for each pair (job, angle), the query turned to those angles first."""
             self._turn_query(occupancy, [(angle_sets[job], angle_of_pair[job_of_pair == job])
-                                         for job in np.unique(job_of_pair)])
+                                         for job in np.unique(job_of_pair)], views)
             return correlation.correlate_pairs(
-                [self._turned_query[float(angle_sets[job][angle])].spectrum
+                [views.turned[float(angle_sets[job][angle])].spectrum
                  for job, angle in zip(job_of_pair, angle_of_pair)],
                 reference_spectra, image_of_job[job_of_pair])
 
         surfaces = self._coarse_to_fine(correlate, len(jobs), len(self.local_offsets))
-        return [self._local_peak(reference, angles, surface, reference_images[image])
+        return [self._local_peak(reference, angles, surface, reference_images[image], views)
                 for (reference, _), angles, surface, image in zip(jobs, angle_sets, surfaces,
                                                                   image_of_job)]
 
     def _local_peak(self, reference: int, angles: np.ndarray, surface: np.ndarray,
-                    reference_image: np.ndarray) -> "_LocalPeak":
+                    reference_image: np.ndarray, views: "_Views") -> "_LocalPeak":
         """The local stage's peak over the surfaces (angles, 2S+1, 2S+1) of reference."""
         reference_norm = float(np.linalg.norm(reference_image))
         normaliser = reference_norm if self.search.score_normalisation == "cosine" else 1.0
         a, row, col = np.unravel_index(int(surface.argmax()), surface.shape)
         raw = float(surface[a, row, col])
-        best = self._turned_query[float(angles[a])]
+        best = views.turned[float(angles[a])]
         best_query, best_covered = best.weights, best.covered
         query_norm = float(np.linalg.norm(best_query))
         di, dj = row - self.high_shift, col - self.high_shift
-        if self._query_seen is not None:
+        if views.seen is not None:
             # The cosine over the cells the query saw: the reference beyond them is unknown
             # to the query, not a mismatch.
             reference_norm = _norm_under(reference_image, best_covered, di, dj)
@@ -1169,20 +1164,19 @@ class MatchedFilterIndex:
                           surface=surface, angle_index=int(a), row=int(row), col=int(col))
 
     def _turn_query(self, occupancy: np.ndarray,
-                    angle_sets: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        """The query turned to angles[indices] for each (angles, indices), those not turned yet
-        (self._turned_query), their spectra in one batch. Each set of angles is one of the
-        rotation tables prepared at start-up."""
+                    angle_sets: list[tuple[np.ndarray, np.ndarray]], views: "_Views") -> None:
+        """occupancy turned to angles[indices] for each (angles, indices), those views has not
+        turned yet, their spectra in one batch, into views.turned."""
         w = self.params.unoccupied_weight
         keys, weights, footprints = [], [], []
         for angles, indices in angle_sets:
             # An angle may recur in the sets of one batch: finalists a step apart share some.
             missing = np.array([index for index in np.unique(indices)
-                                if float(angles[index]) not in self._turned_query
+                                if float(angles[index]) not in views.turned
                                 and float(angles[index]) not in keys], dtype=np.int64)
             if not len(missing):
                 continue
-            covered = self._query_covered(angles, missing)
+            covered = self._query_covered(angles, missing, views.seen)
             weights.append(weighted(self._rotated(occupancy, angles, missing), w, covered))
             turns = covered is not None and covered.ndim == 3
             footprints += [covered[k] if turns else None for k in range(len(missing))]
@@ -1192,7 +1186,7 @@ class MatchedFilterIndex:
         queries = np.concatenate(weights)
         spectra = self._local_correlation.spectra(queries)
         for k, key in enumerate(keys):
-            self._turned_query[key] = _TurnedQuery(queries[k], footprints[k], spectra[k])
+            views.turned[key] = _TurnedQuery(queries[k], footprints[k], spectra[k])
 
     def _seen(self, occupancy: np.ndarray) -> np.ndarray | None:
         """The query's own footprint when queries are matched by what they observed
@@ -1205,13 +1199,13 @@ class MatchedFilterIndex:
             return None
         return seen if self.covered is None else seen & self.covered
 
-    def _query_covered(self, angles: np.ndarray, only: np.ndarray | None = None
-                       ) -> np.ndarray | None:
-        """The footprint of the query turned by each angle (of angles[only], when given): a
-        field-of-view wedge and the cells the query has seen turn with the sensor; the disc and
-        the square window do not."""
-        if self._query_seen is not None:
-            return self._rotated(self._query_seen, angles, only) & self.covered_window
+    def _query_covered(self, angles: np.ndarray, only: np.ndarray | None,
+                       seen: np.ndarray | None) -> np.ndarray | None:
+        """The footprint of a query that has seen the cells seen (None: the map's footprint)
+        turned by each angle (of angles[only], when given): a field-of-view wedge and the cells
+        seen turn with the sensor; the disc and the square window do not."""
+        if seen is not None:
+            return self._rotated(seen, angles, only) & self.covered_window
         if self.covered is None or not turns_with_sensor(self.params):
             return self.covered
         return self._rotated(self.covered, angles, only) & self.covered_window
@@ -1222,7 +1216,7 @@ class MatchedFilterIndex:
         headings = np.asarray(headings, dtype=np.int64)
         missing = headings[~self._pooled_made[headings]]
         if (2 * len(missing) > len(self.global_angles) and self._turned_pooling is not None
-                and self._query_seen is None):
+                and self._query_views.seen is None):
             # Every heading at once (TurnedPooling on the root headings, the rest laid out)
             # costs about what a third to a half of them turned one by one does.
             missing = np.arange(len(self.global_angles))
@@ -1237,12 +1231,13 @@ class MatchedFilterIndex:
         out from those by np.rot90."""
         roots = np.unique(self._heading_roots[headings])
         if (len(roots) == len(self._root_headings) and self._turned_pooling is not None
-                and self._query_seen is None):
+                and self._query_views.seen is None):
             turned = self._turned_pooling(occupancy)
         else:
             turned = pooled_weights(rotate_occupancy(occupancy, self.global_angles, roots),
                                     self.params.unoccupied_weight, self.params.pool,
-                                    self._query_covered(self.global_angles, roots))
+                                    self._query_covered(self.global_angles, roots,
+                                                        self._query_views.seen))
         rows = np.searchsorted(roots, self._heading_roots[headings])
         turns = self._heading_turns[headings]
         for quarter_turns in np.unique(turns):
@@ -1377,3 +1372,12 @@ class _TurnedQuery:
     weights: np.ndarray
     covered: np.ndarray | None
     spectrum: object
+
+
+@dataclass
+class _Views:
+    """What the local stage knows of one image it aligns as a query: the cells it has seen
+    (None: the map's footprint) and its turned weights by angle, made as jobs need them."""
+
+    seen: np.ndarray | None
+    turned: dict[float, _TurnedQuery] = field(default_factory=dict)

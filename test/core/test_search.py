@@ -865,7 +865,7 @@ def test_the_query_at_each_heading_is_made_once_and_is_the_query_turned_to_it(wo
     query = describe_points(scan_world(world, 3.0, -1.0, 0.7, rng)[0], PARAMS)
     angles = index.global_angles
     expected = pooled_weights(rotate_occupancy(query, angles), PARAMS.unoccupied_weight,
-                              PARAMS.pool, index._query_covered(angles))
+                              PARAMS.pool, index._query_covered(angles, None, None))
     index.query(query)
     index._pooled_made[:] = False
     made = []
@@ -891,7 +891,7 @@ def test_the_query_at_each_heading_is_made_once_and_is_the_query_turned_to_it(wo
     np.testing.assert_array_equal(
         index._pooled_turns[made_for_other],
         pooled_weights(rotate_occupancy(other, angles), PARAMS.unoccupied_weight, PARAMS.pool,
-                       index._query_covered(angles))[made_for_other])
+                       index._query_covered(angles, None, None))[made_for_other])
 
 
 def test_a_map_searched_whole_is_correlated_once_and_its_finalists_located_in_it(world):
