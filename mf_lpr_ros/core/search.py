@@ -813,9 +813,13 @@ class MatchedFilterIndex:
         return nearest, float(np.sqrt(squared[nearest]))
 
     def _snapped_global_angle(self, turn_deg: float) -> float:
-        """The global angle nearest turn_deg (their rotation tables are prepared)."""
-        index = int(round(turn_deg / self.search.rotation_step_deg)) % len(self.global_angles)
-        return float(self.global_angles[index])
+        """The global angle nearest turn_deg (their rotation tables are prepared): the step
+        nearest it on the circle, or where a limited field of view leaves that turn out of
+        the global angles, the nearest one kept."""
+        step = self.search.rotation_step_deg
+        nearest_step = (round(turn_deg / step) % round(360 / step)) * step
+        gaps = np.abs((self.global_angles - nearest_step + 180.0) % 360.0 - 180.0)
+        return float(self.global_angles[int(np.argmin(gaps))])
 
     @property
     def estimated_headings(self) -> np.ndarray | None:
