@@ -346,17 +346,27 @@ def _rotation_sources(size: int, angles_deg: tuple[float, ...]) -> np.ndarray:
     """For each angle, the flat source cell of every output cell (A, size^2) int32; size^2, one
     past the last cell, for a source outside the window."""
     centres = np.arange(size) - size / 2 + 0.5
-    # x along columns, y along rows, broadcast rather than laid out (a set made for one call,
-    # a place's similarity, is on the query's path).
+    # x along columns, y along rows, broadcast rather than laid out, and each full-size step
+    # in place (a set made for one call, a place's similarity, is on the query's path).
     x, y = centres[None, None, :], centres[None, :, None]
     theta = np.deg2rad(np.asarray(angles_deg))[:, None, None]
     cos, sin = np.cos(theta), np.sin(theta)
+    shape = (len(angles_deg), size, size)
+
+    def source_cells(along_x: np.ndarray, along_y: np.ndarray) -> np.ndarray:
+        total = np.add(along_x * x, along_y * y, out=np.empty(shape))
+        total += size / 2
+        return np.floor(total, out=total).astype(np.int32)
+
     # Inverse mapping: the output cell at p takes the input at R(-theta) p.
-    cols = np.floor(cos * x + sin * y + size / 2).astype(np.int32)
-    rows = np.floor(-sin * x + cos * y + size / 2).astype(np.int32)
-    inside = (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size)
-    return np.where(inside, rows * size + cols, size * size).astype(np.int32, copy=False).reshape(
-        len(angles_deg), -1)
+    cols, rows = source_cells(cos, sin), source_cells(-sin, cos)
+    # Read as unsigned, a cell below 0 is past size: one comparison a bound.
+    inside = cols.view(np.uint32) < size
+    inside &= rows.view(np.uint32) < size
+    rows *= size
+    rows += cols
+    rows[~inside] = size * size
+    return rows.reshape(len(angles_deg), -1)
 
 
 def quarter_turn_roots(size: int, angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

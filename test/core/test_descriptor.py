@@ -195,6 +195,30 @@ def test_a_few_angles_of_a_set_turn_as_the_whole_set_does():
                           rotate_occupancy(occupancy, odd)[only])
 
 
+@pytest.mark.parametrize("size", [9, 10, 31])
+def test_each_cell_takes_the_cell_it_turns_from_and_cells_from_outside_are_unoccupied(size):
+    """Nearest-neighbour inverse mapping, cell by cell: the output cell at p takes the input at
+    R(-theta) p; a source outside the window, on any side, leaves the cell unoccupied."""
+    rng = np.random.default_rng(size)
+    occupancy = rng.random((size, size)) < 0.5
+    angles = np.concatenate([rng.uniform(-400.0, 400.0, 6), [0.0, 45.0, 90.0, 181.3]])
+    turned = rotate_occupancy(occupancy, angles, cached=False)
+    from_outside = 0
+    for a, angle in enumerate(angles):
+        cos, sin = np.cos(np.deg2rad(angle)), np.sin(np.deg2rad(angle))
+        for row in range(size):
+            for col in range(size):
+                x, y = col - size / 2 + 0.5, row - size / 2 + 0.5
+                source_col = int(np.floor(cos * x + sin * y + size / 2))
+                source_row = int(np.floor(-sin * x + cos * y + size / 2))
+                inside = 0 <= source_col < size and 0 <= source_row < size
+                from_outside += not inside
+                expected = inside and occupancy[source_row, source_col]
+                assert turned[a, row, col] == expected, (angle, row, col)
+    assert from_outside > 0
+    assert np.array_equal(rotate_occupancy(occupancy, angles), turned)
+
+
 @pytest.mark.parametrize("size,step", [(120, 5.0), (100, 10.0), (60, 7.5)])
 def test_a_heading_is_its_roots_rotation_turned_by_rot90_cell_for_cell(size, step):
     angles = np.arange(0.0, 360.0, step)
