@@ -229,8 +229,8 @@ def composed_covariance(first: np.ndarray, first_covariance: np.ndarray, compose
 
 
 def moved_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    """points (N, 3) float64 moved by the rigid transform (4x4). Its rotation is copied out of
-    the 4x4 first: numpy multiplies by a strided 3x3 without BLAS, ~3x slower."""
+    """points (N, 3) moved by the rigid transform (4x4), as float64. Its rotation is copied out
+    of the 4x4 first: numpy multiplies by a strided 3x3 without BLAS, ~3x slower."""
     moved = points @ np.ascontiguousarray(transform[:3, :3].T)
     moved += transform[:3, 3]
     return moved
