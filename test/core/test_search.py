@@ -984,3 +984,29 @@ def test_a_turn_snaps_to_the_nearest_heading_the_sensor_is_searched_at(world):
             snapped = index._snapped_global_angle(turn)
             assert snapped == pytest.approx(expected), (params.field_of_view_deg, turn)
             assert snapped in index.global_angles
+
+
+def test_a_narrow_sensors_revisit_check_aligns_at_the_turn_the_revisit_implies(world):
+    """The revisit's turn is the difference of two yaws, here either side of +-180 degrees
+    (-344 degrees, a turn of 16): the place's reference is aligned from the heading nearest
+    it among those a 120-degree field of view is searched at, and reported."""
+    narrow = DescriptorParams(voxel_size=0.4, z_min=-1.2, field_of_view_deg=120.0)
+    rng = np.random.default_rng(0)
+    reference_map = ReferenceMap(narrow)
+    for i, (x, y, yaw) in enumerate([(0, 0, 3.0), (25, 0, 1.0), (0, 25, -2.0), (-25, -10, 2.5),
+                                     (20, 20, 0.3)]):
+        points, pose = scan_world(world, x, y, yaw, rng)
+        reference_map.append(describe_points(points, narrow, reference=True, seed_key=i), pose,
+                             float(i), i)
+    index = MatchedFilterIndex(reference_map, SearchParams(
+        prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=0,
+        prefilter_expand_m=0.0))
+    assert 345.0 in index.global_angles and 180.0 not in index.global_angles
+    # The candidate stage hands on a wrong place alone (reference 3): a weak match.
+    _ranking_prefilter(index, [3, 4, 1, 0, 2])
+    points, _ = scan_world(world, 1.3, -0.7, -3.0, np.random.default_rng(1))
+    result = index.query(describe_points(points, narrow),
+                         revisit_places=lambda match: np.array([[1.3, -0.7, -3.0]]))
+    assert result.reference_index == 0 and result.revisit_predicted
+    assert np.hypot(*(result.pose[:2] - (1.3, -0.7))) < 0.3
+    assert yaw_error_deg(result.pose[2], -3.0) < 1.0
