@@ -32,7 +32,9 @@ published; docs/RESULTS.md, session 27), as on a dense 64-beam handheld set we d
   measured, logged and recorded, but the wedge footprint is not applied: it
   (DescriptorParams.field_of_view_deg) left recall on the HKU Avia keyframes unchanged (0.714)
   and let 2 false closures through where the full footprint published none, so it stays a
-  setting the user turns on.
+  setting the user turns on (session 61, with narrow sensors' turns snapped right: on the
+  HKU keyframes 97 closures published and none false, on a simulated Avia in a town 142
+  false of 342).
 What was measured and chosen is returned for the caller to log and to store in the map.
 """
 
