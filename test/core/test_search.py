@@ -31,16 +31,22 @@ def yaw_error_deg(a, b):
     return abs(np.degrees(wrap_angle(a - b)))
 
 
-@pytest.fixture(scope="module")
-def synthetic_map(world):
+def five_places(world, params: DescriptorParams = PARAMS, first_yaw: float = 0.0) -> ReferenceMap:
+    """A map of five places of the world, 25 m or more apart, the first at the origin facing
+    first_yaw."""
     rng = np.random.default_rng(0)
-    reference_map = ReferenceMap(PARAMS)
-    for i, (x, y, yaw) in enumerate([(0, 0, 0.0), (25, 0, 1.0), (0, 25, -2.0), (-25, -10, 2.5),
-                                     (20, 20, 0.3)]):
+    reference_map = ReferenceMap(params)
+    for i, (x, y, yaw) in enumerate([(0, 0, first_yaw), (25, 0, 1.0), (0, 25, -2.0),
+                                     (-25, -10, 2.5), (20, 20, 0.3)]):
         points, pose = scan_world(world, x, y, yaw, rng)
-        reference_map.append(describe_points(points, PARAMS, reference=True, seed_key=i), pose,
+        reference_map.append(describe_points(points, params, reference=True, seed_key=i), pose,
                              float(i), i)
     return reference_map
+
+
+@pytest.fixture(scope="module")
+def synthetic_map(world):
+    return five_places(world)
 
 
 @pytest.mark.parametrize("truth,expected_ref", [((1.3, -0.7, 0.5), 0), ((24.1, 1.9, -2.0), 1),
@@ -991,14 +997,7 @@ def test_a_narrow_sensors_revisit_check_aligns_at_the_turn_the_revisit_implies(w
     (-344 degrees, a turn of 16): the place's reference is aligned from the heading nearest
     it among those a 120-degree field of view is searched at, and reported."""
     narrow = DescriptorParams(voxel_size=0.4, z_min=-1.2, field_of_view_deg=120.0)
-    rng = np.random.default_rng(0)
-    reference_map = ReferenceMap(narrow)
-    for i, (x, y, yaw) in enumerate([(0, 0, 3.0), (25, 0, 1.0), (0, 25, -2.0), (-25, -10, 2.5),
-                                     (20, 20, 0.3)]):
-        points, pose = scan_world(world, x, y, yaw, rng)
-        reference_map.append(describe_points(points, narrow, reference=True, seed_key=i), pose,
-                             float(i), i)
-    index = MatchedFilterIndex(reference_map, SearchParams(
+    index = MatchedFilterIndex(five_places(world, narrow, first_yaw=3.0), SearchParams(
         prefilter_top_k=1, prefilter_rescore_k=0, prefilter_retry_top_k=0,
         prefilter_expand_m=0.0))
     assert 345.0 in index.global_angles and 180.0 not in index.global_angles
