@@ -149,15 +149,17 @@ def height_density(points: np.ndarray, params: DescriptorParams) -> np.ndarray:
     levels = np.floor(z / voxel).astype(np.int64)
     levels -= levels.min()
     n_levels = int(levels.max()) + 1
+    voxels = column * n_levels + levels
     if size * size * n_levels <= MAX_DENSE_VOXEL_CELLS:
+        # The occupied voxels, in order, marked on a dense grid: cheaper than sorting them.
         occupied = np.zeros(size * size * n_levels, dtype=bool)
-        occupied[column * n_levels + levels] = True
-        # Counted by the columns of the occupied voxels, not by summing every voxel of every
-        # column (a submap's 60 levels: 4x faster, the same counts).
-        counts = np.bincount(np.flatnonzero(occupied) // n_levels, minlength=size * size)
+        occupied[voxels] = True
+        voxels = np.flatnonzero(occupied)
     else:
-        unique_voxels = np.unique(column * n_levels + levels)
-        counts = np.bincount(unique_voxels // n_levels, minlength=size * size)
+        voxels = np.unique(voxels)
+    # Counted by the columns of the occupied voxels (a submap's 60 levels: 4x faster than
+    # summing every voxel of every column).
+    counts = np.bincount(voxels // n_levels, minlength=size * size)
     return counts.reshape(size, size).astype(np.float32)
 
 
